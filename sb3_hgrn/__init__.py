@@ -1,0 +1,16 @@
+"""sb3_hgrn: graph-recurrent many-agent reinforcement learning for Stable-Baselines3."""
+
+from sb3_hgrn.common.evaluation import GraphEvalCallback, evaluate_graph_policy
+from sb3_hgrn.common.vec_env import GraphVecEnv, make_graph_vec_env
+from sb3_hgrn.soft_hgrn import SoftHGRN
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "GraphEvalCallback",
+    "GraphVecEnv",
+    "SoftHGRN",
+    "__version__",
+    "evaluate_graph_policy",
+    "make_graph_vec_env",
+]

@@ -1,0 +1,174 @@
+"""Replay buffer whose samples are whole graphs (all agents of one env copy at one step)."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import BaseBuffer
+
+
+class GraphSamples(NamedTuple):
+    """A batch of ``batch`` graphs of ``n_agents`` agents each."""
+
+    observations: th.Tensor  # (batch, n_agents, obs_dim) float32
+    neighbors: th.Tensor  # (batch, n_agents, max_neighbors) int64, -1 = none
+    actions: th.Tensor  # (batch, n_agents) int64
+    rewards: th.Tensor  # (batch, n_agents) float32
+    next_observations: th.Tensor  # (batch, n_agents, obs_dim) float32
+    next_neighbors: th.Tensor  # (batch, n_agents, max_neighbors) int64
+    terminated: th.Tensor  # (batch, n_agents) float32, 1 where the episode really ended (not time-outs)
+    hidden: th.Tensor  # (batch, n_agents, state_dim) recurrent state fed in (zero at episode starts)
+    next_hidden: th.Tensor  # (batch, n_agents, state_dim) recurrent state produced by that step
+
+
+def smallest_index_dtype(n_agents: int) -> np.dtype:
+    """Smallest signed integer dtype holding agent indices ``-1 .. n_agents - 1``."""
+    for dtype in (np.int8, np.int16, np.int32):
+        if n_agents - 1 <= np.iinfo(dtype).max:
+            return np.dtype(dtype)
+    return np.dtype(np.int64)
+
+
+class GraphReplayBuffer(BaseBuffer):
+    """Replay buffer of joint transitions, stored per env copy and sampled as whole graphs.
+
+    ``buffer_size`` counts agent-transitions, as in SB3 (``num_timesteps`` counts agent-steps):
+    the buffer keeps ``buffer_size // n_envs`` steps of all ``n_envs = n_copies * n_agents`` slots.
+    A sample draws (step, copy) pairs, so ``batch_size`` counts graphs.
+
+    Memory is kept small: observations keep the env's own dtype (int8 for Surviving), neighbour
+    indices use the smallest integer type for the agent count, the recurrent state is stored once
+    per step (by default in float16): row ``t`` holds the state carried into step ``t`` and a flag
+    marking episode starts, and the state produced by step ``t`` is the one carried into ``t + 1``.
+
+    :param buffer_size: capacity in agent-transitions.
+    :param observation_space: the graph VecEnv's Dict space (keys ``obs`` and ``neighbors``).
+    :param action_space: ``Discrete`` action space.
+    :param device: torch device of the sampled tensors.
+    :param n_envs: number of VecEnv slots (``n_copies * n_agents``).
+    :param n_agents: agents per env copy.
+    :param state_dim: width of the recurrent state (0 without recurrence).
+    :param hidden_dtype: storage dtype of the recurrent state.
+    """
+
+    def __init__(
+        self,
+        buffer_size: int,
+        observation_space: spaces.Dict,
+        action_space: spaces.Discrete,
+        device: th.device | str = "auto",
+        n_envs: int = 1,
+        n_agents: int = 1,
+        state_dim: int = 0,
+        hidden_dtype: np.dtype | str = np.float16,
+    ):
+        super().__init__(buffer_size, observation_space, action_space, device, n_envs=n_envs)
+        if n_envs % n_agents != 0:
+            raise ValueError(f"n_envs={n_envs} is not a multiple of n_agents={n_agents}.")
+        self.buffer_size = max(buffer_size // n_envs, 2)
+        self.n_agents = n_agents
+        self.n_copies = n_envs // n_agents
+        rows = (self.buffer_size, self.n_copies, n_agents)
+        obs_space = observation_space["obs"]
+        index_dtype = smallest_index_dtype(n_agents)
+        n_neighbors = observation_space["neighbors"].shape[0]
+        action_dtype = np.uint8 if action_space.n <= 256 else np.int64
+        self.observations = np.zeros((*rows, *obs_space.shape), dtype=obs_space.dtype)
+        self.next_observations = np.zeros_like(self.observations)
+        self.neighbors = np.zeros((*rows, n_neighbors), dtype=index_dtype)
+        self.next_neighbors = np.zeros_like(self.neighbors)
+        self.actions = np.zeros(rows, dtype=action_dtype)
+        self.rewards = np.zeros(rows, dtype=np.float32)
+        self.terminated = np.zeros(rows, dtype=bool)
+        self.hidden = np.zeros((*rows, state_dim), dtype=hidden_dtype)
+        self.episode_starts = np.zeros(rows[:2], dtype=bool)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by all storage arrays."""
+        arrays = (
+            self.observations, self.next_observations, self.neighbors, self.next_neighbors,
+            self.actions, self.rewards, self.terminated, self.hidden, self.episode_starts,
+        )  # fmt: skip
+        return sum(array.nbytes for array in arrays)
+
+    def add(
+        self,
+        obs: dict[str, np.ndarray],
+        next_obs: dict[str, np.ndarray],
+        actions: np.ndarray,
+        rewards: np.ndarray,
+        terminated: np.ndarray,
+        hidden: np.ndarray,
+        episode_starts: np.ndarray,
+        next_hidden: np.ndarray,
+    ) -> None:
+        """Store one step of all slots.
+
+        :param obs: ``{"obs": (n_envs, obs_dim), "neighbors": (n_envs, max_neighbors)}``.
+        :param next_obs: the same for the next step (the final observation where an episode ended).
+        :param actions: ``(n_envs,)``.
+        :param rewards: ``(n_envs,)``.
+        :param terminated: ``(n_envs,)`` bool, true episode ends only (not time limits).
+        :param hidden: ``(n_envs, state_dim)`` state carried into this step, before the reset at
+            episode starts.
+        :param episode_starts: ``(n_envs,)`` bool, ``obs`` is the first of an episode.
+        :param next_hidden: ``(n_envs, state_dim)`` state produced by this step.
+        """
+        shape = (self.n_copies, self.n_agents)
+        pos = self.pos
+        self.observations[pos] = obs["obs"].reshape(*shape, -1)
+        self.next_observations[pos] = next_obs["obs"].reshape(*shape, -1)
+        self.neighbors[pos] = obs["neighbors"].reshape(*shape, -1)
+        self.next_neighbors[pos] = next_obs["neighbors"].reshape(*shape, -1)
+        self.actions[pos] = actions.reshape(shape)
+        self.rewards[pos] = rewards.reshape(shape)
+        self.terminated[pos] = terminated.reshape(shape)
+        self.hidden[pos] = hidden.reshape(*shape, -1)
+        self.episode_starts[pos] = episode_starts.reshape(shape)[:, 0]
+        self.pos = (pos + 1) % self.buffer_size
+        # the produced state is the one carried into the next step: it lands in the next row
+        self.hidden[self.pos] = next_hidden.reshape(*shape, -1)
+        if self.pos == 0:
+            self.full = True
+
+    def sample(self, batch_size: int, env=None) -> GraphSamples:
+        """Draw ``batch_size`` graphs uniformly from the stored steps and copies."""
+        if self.full:
+            # row `pos` holds the oldest step, but its state slot already holds the newest next state
+            rows = (
+                self.pos + 1 + np.random.randint(0, self.buffer_size - 1, size=batch_size)
+            ) % self.buffer_size
+        elif self.pos > 0:
+            rows = np.random.randint(0, self.pos, size=batch_size)
+        else:
+            raise RuntimeError("Cannot sample from an empty replay buffer.")
+        copies = np.random.randint(0, self.n_copies, size=batch_size)
+        return self._get_samples(rows, copies)
+
+    def _get_samples(self, rows: np.ndarray, copies: np.ndarray, env=None) -> GraphSamples:
+        next_rows = (rows + 1) % self.buffer_size
+        keep = ~self.episode_starts[rows, copies]
+        hidden = self.hidden[rows, copies] * keep[:, None, None].astype(self.hidden.dtype)
+        device = self.device
+
+        def floats(array: np.ndarray) -> th.Tensor:
+            return th.as_tensor(array, device=device).float()
+
+        def longs(array: np.ndarray) -> th.Tensor:
+            return th.as_tensor(array, device=device).long()
+
+        return GraphSamples(
+            observations=floats(self.observations[rows, copies]),
+            neighbors=longs(self.neighbors[rows, copies]),
+            actions=longs(self.actions[rows, copies]),
+            rewards=floats(self.rewards[rows, copies]),
+            next_observations=floats(self.next_observations[rows, copies]),
+            next_neighbors=longs(self.next_neighbors[rows, copies]),
+            terminated=floats(self.terminated[rows, copies]),
+            hidden=floats(hidden),
+            next_hidden=floats(self.hidden[next_rows, copies]),
+        )

@@ -1,0 +1,143 @@
+"""Team-return evaluation of graph policies, and a callback that runs it during training."""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import numpy as np
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import BaseCallback, EventCallback
+from stable_baselines3.common.vec_env import VecEnv
+
+
+def evaluate_graph_policy(
+    model: BaseAlgorithm,
+    env: VecEnv,
+    n_eval_episodes: int = 10,
+    deterministic: bool = False,
+    return_episode_rewards: bool = False,
+) -> tuple[float, float] | tuple[list[float], list[int]]:
+    """Run ``n_eval_episodes`` team episodes and report their team returns.
+
+    A team episode is one episode of one env copy; its return is the sum of all agents' rewards
+    over all its steps. Episodes are spread evenly over the copies, every copy keeps stepping until
+    all are counted, and the recurrent state is reset exactly at each copy's episode starts.
+
+    :param model: a trained graph model (``predict(obs, state, episode_start, deterministic)``).
+    :param env: a graph VecEnv (:func:`sb3_hgrn.make_graph_vec_env`); it is reset first.
+    :param n_eval_episodes: number of team episodes.
+    :param deterministic: greedy actions instead of sampled ones.
+    :param return_episode_rewards: return the per-episode lists instead of mean and std.
+    :return: ``(mean, std)`` of team returns, or ``(returns, lengths)``.
+    """
+    n_agents = getattr(env, "n_agents", None)
+    if not isinstance(n_agents, int) or env.num_envs % n_agents != 0:
+        raise TypeError(f"evaluate_graph_policy needs a graph VecEnv, got {type(env).__name__}.")
+    if n_eval_episodes < 1:
+        raise ValueError(f"n_eval_episodes must be >= 1, got {n_eval_episodes}.")
+    n_copies = env.num_envs // n_agents
+    targets = np.array([(n_eval_episodes + copy) // n_copies for copy in range(n_copies)])
+    counts = np.zeros(n_copies, dtype=int)
+    returns: list[float] = []
+    lengths: list[int] = []
+    observations = env.reset()
+    state = None
+    episode_starts = np.ones(env.num_envs, dtype=bool)
+    while (counts < targets).any():
+        actions, state = model.predict(
+            observations, state=state, episode_start=episode_starts, deterministic=deterministic
+        )
+        observations, _, dones, infos = env.step(actions)
+        episode_starts = np.asarray(dones, dtype=bool)
+        for copy in np.flatnonzero(episode_starts[::n_agents]):
+            if counts[copy] < targets[copy]:
+                team = infos[copy * n_agents]["team_episode"]
+                returns.append(float(team["r"]))
+                lengths.append(int(team["l"]))
+                counts[copy] += 1
+    if return_episode_rewards:
+        return returns, lengths
+    return float(np.mean(returns)), float(np.std(returns))
+
+
+class GraphEvalCallback(EventCallback):
+    """Evaluate team returns every ``eval_freq`` vec-steps; keep the best model.
+
+    Logs ``eval/mean_team_reward``, ``eval/std_team_reward`` and ``eval/mean_ep_length``; with
+    ``best_model_save_path`` saves ``best_model.zip`` on each new best; with ``log_path`` writes
+    ``evaluations.npz`` (``timesteps``, ``results``, ``ep_lengths``) as SB3's ``EvalCallback``.
+
+    :param eval_env: a graph VecEnv (separate from the training env).
+    :param callback_on_new_best: callback triggered on a new best mean team return.
+    :param n_eval_episodes: team episodes per evaluation.
+    :param eval_freq: vec-steps between evaluations.
+    """
+
+    def __init__(
+        self,
+        eval_env: VecEnv,
+        callback_on_new_best: BaseCallback | None = None,
+        n_eval_episodes: int = 5,
+        eval_freq: int = 10_000,
+        log_path: str | None = None,
+        best_model_save_path: str | None = None,
+        deterministic: bool = False,
+        verbose: int = 1,
+    ):
+        super().__init__(callback_on_new_best, verbose=verbose)
+        self.eval_env = eval_env
+        self.n_eval_episodes = n_eval_episodes
+        self.eval_freq = eval_freq
+        self.log_path = log_path
+        self.best_model_save_path = best_model_save_path
+        self.deterministic = deterministic
+        self.best_mean_reward = -np.inf
+        self.last_mean_reward = -np.inf
+        self.evaluations_timesteps: list[int] = []
+        self.evaluations_results: list[list[float]] = []
+        self.evaluations_length: list[list[int]] = []
+
+    def _init_callback(self) -> None:
+        for path in (self.best_model_save_path, self.log_path):
+            if path is not None:
+                os.makedirs(path, exist_ok=True)
+
+    def _on_step(self) -> bool:
+        if self.eval_freq <= 0 or self.n_calls % self.eval_freq != 0:
+            return True
+        returns, lengths = evaluate_graph_policy(
+            self.model, self.eval_env, self.n_eval_episodes, self.deterministic, return_episode_rewards=True
+        )
+        mean_return, std_return = float(np.mean(returns)), float(np.std(returns))
+        self.last_mean_reward = mean_return
+        if self.log_path is not None:
+            self.evaluations_timesteps.append(self.num_timesteps)
+            self.evaluations_results.append(returns)
+            self.evaluations_length.append(lengths)
+            np.savez(
+                os.path.join(self.log_path, "evaluations"),
+                timesteps=self.evaluations_timesteps,
+                results=self.evaluations_results,
+                ep_lengths=self.evaluations_length,
+            )
+        if self.verbose >= 1:
+            print(
+                f"Eval num_timesteps={self.num_timesteps}, team return={mean_return:.2f} +/- {std_return:.2f}"
+            )
+        self.logger.record("eval/mean_team_reward", mean_return)
+        self.logger.record("eval/std_team_reward", std_return)
+        self.logger.record("eval/mean_ep_length", float(np.mean(lengths)))
+        self.logger.record("time/total_timesteps", self.num_timesteps, exclude="tensorboard")
+        self.logger.dump(self.num_timesteps)
+        if mean_return > self.best_mean_reward:
+            self.best_mean_reward = mean_return
+            if self.best_model_save_path is not None:
+                self.model.save(os.path.join(self.best_model_save_path, "best_model"))
+            if self.callback is not None:
+                return self.callback.on_step()
+        return True
+
+    def update_child_locals(self, locals_: dict[str, Any]) -> None:
+        if self.callback is not None:
+            self.callback.update_locals(locals_)

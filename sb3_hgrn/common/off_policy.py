@@ -1,0 +1,279 @@
+"""Common base of the graph algorithms: SB3's off-policy loop with recurrent state and team episodes."""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections import deque
+from typing import Any
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.type_aliases import GymEnv, RolloutReturn, Schedule, TrainFreq
+from stable_baselines3.common.utils import LinearSchedule, safe_mean, should_collect_more_steps
+from stable_baselines3.common.vec_env import VecEnv
+
+from sb3_hgrn.common.buffers import GraphReplayBuffer
+from sb3_hgrn.common.policies import GraphPolicy, check_graph_spaces
+from sb3_hgrn.common.vec_env import make_graph_vec_env
+
+
+def check_graph_env(env: Any) -> VecEnv:
+    """Return ``env`` as a graph VecEnv, or raise an error that names what is wrong with it.
+
+    A registered env name is turned into a one-copy graph VecEnv (as SB3 makes an env from a name).
+    """
+    if isinstance(env, str):
+        return make_graph_vec_env(env)
+    if not isinstance(env, VecEnv):
+        raise TypeError(
+            f"Expected a graph VecEnv (sb3_hgrn.make_graph_vec_env), got {type(env).__name__}; "
+            "single-agent gymnasium envs are not supported."
+        )
+    if not isinstance(getattr(env, "n_agents", None), int) or env.num_envs % env.n_agents != 0:
+        raise TypeError(
+            f"{type(env).__name__} is not a graph VecEnv: it needs an integer n_agents attribute with "
+            "num_envs a multiple of it (build it with sb3_hgrn.make_graph_vec_env)."
+        )
+    check_graph_spaces(env.observation_space, env.action_space)
+    return env
+
+
+class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
+    """SB3 ``OffPolicyAlgorithm`` for graph VecEnvs whose slots are the agents of env copies.
+
+    Units follow SB3: ``total_timesteps``, ``learning_starts`` and ``buffer_size`` count
+    agent-steps (one vec-step of ``n_copies`` copies of ``n_agents`` agents is
+    ``n_copies * n_agents`` of them), ``train_freq`` counts vec-steps, ``batch_size`` counts graphs
+    and ``log_interval`` counts team episodes (one per env copy).
+
+    The recurrent state of every agent is threaded through collection (also during the random
+    warm-up), reset at episode starts, and stored with each transition. Exploration mixes in a
+    uniform random action per agent with probability ``exploration_rate``, scheduled linearly from
+    ``exploration_initial_eps`` to ``exploration_final_eps`` over ``exploration_fraction`` of
+    training.
+    """
+
+    policy: GraphPolicy
+    replay_buffer: GraphReplayBuffer
+
+    def __init__(
+        self,
+        policy: str | type[GraphPolicy],
+        env: GymEnv | str | None,
+        learning_rate: float | Schedule,
+        buffer_size: int,
+        learning_starts: int,
+        batch_size: int,
+        tau: float,
+        gamma: float,
+        train_freq: int | tuple[int, str],
+        gradient_steps: int,
+        exploration_fraction: float,
+        exploration_initial_eps: float,
+        exploration_final_eps: float,
+        hidden_dtype: str = "float16",
+        policy_kwargs: dict[str, Any] | None = None,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+    ):
+        if env is not None:
+            env = check_graph_env(env)
+        super().__init__(
+            policy,
+            env,
+            learning_rate,
+            buffer_size=buffer_size,
+            learning_starts=learning_starts,
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            train_freq=train_freq,
+            gradient_steps=gradient_steps,
+            policy_kwargs=policy_kwargs,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            verbose=verbose,
+            device=device,
+            support_multi_env=True,
+            monitor_wrapper=False,
+            seed=seed,
+            sde_support=False,
+            supported_action_spaces=(spaces.Discrete,),
+        )
+        self.exploration_fraction = exploration_fraction
+        self.exploration_initial_eps = exploration_initial_eps
+        self.exploration_final_eps = exploration_final_eps
+        self.exploration_rate = exploration_initial_eps
+        self.hidden_dtype = hidden_dtype
+        self.n_agents = env.n_agents if env is not None else None
+        self._last_hidden: np.ndarray | None = None
+        self._team_episodes: deque = deque(maxlen=stats_window_size)
+
+    # --- model set-up -------------------------------------------------------------------------
+    def _setup_model(self) -> None:
+        self._setup_lr_schedule()
+        self.set_random_seed(self.seed)
+        if self.env is not None:
+            self.n_agents = self.env.n_agents
+        self.policy = self.policy_class(
+            self.observation_space, self.action_space, self.lr_schedule, **self.policy_kwargs
+        ).to(self.device)
+        self.policy.n_agents = self.n_agents
+        self.replay_buffer = None
+        if self.env is not None:
+            self._make_replay_buffer()
+        self._convert_train_freq()
+        self.exploration_schedule = LinearSchedule(
+            self.exploration_initial_eps, self.exploration_final_eps, self.exploration_fraction
+        )
+        self._team_episodes = deque(maxlen=self._stats_window_size)
+
+    def _make_replay_buffer(self) -> None:
+        self.replay_buffer = GraphReplayBuffer(
+            self.buffer_size,
+            self.observation_space,
+            self.action_space,
+            device=self.device,
+            n_envs=self.n_envs,
+            n_agents=self.n_agents,
+            state_dim=self.policy.state_dim,
+            hidden_dtype=self.hidden_dtype,
+        )
+
+    def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
+        """Attach another graph VecEnv (any number of copies or agents, the same spaces)."""
+        env = check_graph_env(env)
+        super().set_env(env, force_reset=force_reset)
+        self.n_agents = env.n_agents
+        self.policy.n_agents = env.n_agents
+        buffer = self.replay_buffer
+        if buffer is None or buffer.n_envs != env.num_envs or buffer.n_agents != env.n_agents:
+            self._make_replay_buffer()
+        self._last_hidden = None
+
+    @staticmethod
+    def _wrap_env(env: GymEnv, verbose: int = 0, monitor_wrapper: bool = True) -> VecEnv:
+        return check_graph_env(env)
+
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "_last_hidden", "_team_episodes", "exploration_schedule"]
+
+    # --- collection -----------------------------------------------------------------------------
+    def _setup_learn(self, total_timesteps, callback=None, reset_num_timesteps=True, tb_log_name="run",
+                     progress_bar=False):  # fmt: skip
+        if self.replay_buffer is None:
+            self._make_replay_buffer()
+        reset = reset_num_timesteps or self._last_obs is None
+        result = super()._setup_learn(
+            total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar
+        )
+        if reset or self._last_hidden is None or self._last_hidden.shape[0] != self.n_envs:
+            self._last_hidden = np.zeros((self.n_envs, self.policy.state_dim), dtype=np.float32)
+            self._last_episode_starts = np.ones(self.n_envs, dtype=bool)
+        return result
+
+    def _choose_actions(self, hidden: np.ndarray, learning_starts: int) -> tuple[np.ndarray, np.ndarray]:
+        """Exploration actions ``(n_envs,)`` and the new recurrent state ``(n_envs, state_dim)``."""
+        obs_tensor, _ = self.policy.obs_to_tensor(self._last_obs)
+        with th.no_grad():
+            actions, new_hidden = self.policy.act(
+                obs_tensor, th.as_tensor(hidden, device=self.device), deterministic=False
+            )
+        actions = actions.cpu().numpy()
+        n_actions = int(self.action_space.n)
+        if self.num_timesteps < learning_starts:
+            actions = np.random.randint(0, n_actions, size=self.n_envs)
+        elif self.exploration_rate > 0:
+            explore = np.random.random(self.n_envs) < self.exploration_rate
+            actions = np.where(explore, np.random.randint(0, n_actions, size=self.n_envs), actions)
+        return actions, new_hidden.cpu().numpy()
+
+    def _final_observations(self, new_obs: dict[str, np.ndarray], dones: np.ndarray, infos: list[dict]):
+        """Next observations with each ended episode's final observation, and true terminations."""
+        terminated = np.zeros(self.n_envs, dtype=bool)
+        if not dones.any():
+            return new_obs, terminated
+        next_obs = {key: value.copy() for key, value in new_obs.items()}
+        n = self.n_agents
+        for first_slot in np.flatnonzero(dones[::n]) * n:
+            team = infos[first_slot]["team_episode"]
+            slots = slice(first_slot, first_slot + n)
+            for key, value in team["final_observation"].items():
+                next_obs[key][slots] = value
+            terminated[slots] = team["terminated"]
+        return next_obs, terminated
+
+    def collect_rollouts(
+        self,
+        env: VecEnv,
+        callback: BaseCallback,
+        train_freq: TrainFreq,
+        replay_buffer: GraphReplayBuffer,
+        action_noise: None = None,
+        learning_starts: int = 0,
+        log_interval: int | None = None,
+    ) -> RolloutReturn:
+        """Step all env copies ``train_freq`` times, storing whole graphs with their recurrent state."""
+        self.policy.set_training_mode(False)
+        n_steps, n_episodes = 0, 0
+        callback.on_rollout_start()
+        while should_collect_more_steps(train_freq, n_steps, n_episodes):
+            hidden_in = self._last_hidden * (1.0 - self._last_episode_starts)[:, None]
+            actions, next_hidden = self._choose_actions(hidden_in.astype(np.float32), learning_starts)
+            new_obs, rewards, dones, infos = env.step(actions)
+            if not np.all(np.isfinite(rewards)):
+                bad = np.flatnonzero(~np.isfinite(rewards))
+                raise ValueError(
+                    f"The env returned non-finite rewards {rewards[bad][:5]} at slots {bad[:5]}."
+                )
+            self.num_timesteps += env.num_envs
+            n_steps += 1
+            callback.update_locals(locals())
+            if not callback.on_step():
+                return RolloutReturn(n_steps * env.num_envs, n_episodes, continue_training=False)
+
+            next_obs, terminated = self._final_observations(new_obs, dones, infos)
+            replay_buffer.add(
+                self._last_obs, next_obs, actions, rewards, terminated,
+                self._last_hidden, self._last_episode_starts, next_hidden,
+            )  # fmt: skip
+            self._last_obs, self._last_hidden = new_obs, next_hidden
+            self._last_episode_starts = np.asarray(dones, dtype=bool)
+            self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)
+            self._on_step()
+            for first_slot in np.flatnonzero(dones[:: self.n_agents]) * self.n_agents:
+                team = infos[first_slot]["team_episode"]
+                self._team_episodes.append({"r": team["r"], "l": team["l"]})
+                self._episode_num += 1
+                n_episodes += 1
+                if log_interval is not None and self._episode_num % log_interval == 0:
+                    self.dump_logs()
+        callback.on_rollout_end()
+        return RolloutReturn(n_steps * env.num_envs, n_episodes, continue_training=True)
+
+    def _on_step(self) -> None:
+        self.exploration_rate = self.exploration_schedule(self._current_progress_remaining)
+
+    def dump_logs(self) -> None:
+        """Log team returns (sum over agents and steps of an episode) and the usual time figures."""
+        elapsed = max((time.time_ns() - self.start_time) / 1e9, sys.float_info.epsilon)
+        if self._team_episodes:
+            team_returns = [episode["r"] for episode in self._team_episodes]
+            self.logger.record("rollout/ep_team_rew_mean", safe_mean(team_returns))
+            self.logger.record("rollout/ep_rew_mean", safe_mean(team_returns) / self.n_agents)
+            self.logger.record(
+                "rollout/ep_len_mean", safe_mean([episode["l"] for episode in self._team_episodes])
+            )
+        self.logger.record("rollout/exploration_rate", self.exploration_rate)
+        self.logger.record("time/episodes", self._episode_num, exclude="tensorboard")
+        self.logger.record("time/fps", int((self.num_timesteps - self._num_timesteps_at_start) / elapsed))
+        self.logger.record("time/time_elapsed", int(elapsed), exclude="tensorboard")
+        self.logger.record("time/total_timesteps", self.num_timesteps, exclude="tensorboard")
+        self.logger.dump(step=self.num_timesteps)

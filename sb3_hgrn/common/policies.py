@@ -1,0 +1,171 @@
+"""Policy base for graph observations: slot batches <-> graphs, and recurrent ``predict``."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import Schedule
+
+from sb3_hgrn.common.hgrn import HGRN
+
+GraphObs = dict[str, th.Tensor]
+
+
+def check_graph_spaces(observation_space: spaces.Space, action_space: spaces.Space) -> None:
+    """Raise a clear error unless the spaces are those of a graph VecEnv with discrete actions."""
+    if not (
+        isinstance(observation_space, spaces.Dict) and {"obs", "neighbors"} <= set(observation_space.spaces)
+    ):
+        raise TypeError(
+            "Graph policies need the Dict observation space of a graph VecEnv (keys 'obs' and "
+            f"'neighbors'; build the env with sb3_hgrn.make_graph_vec_env), got {observation_space}."
+        )
+    if not isinstance(action_space, spaces.Discrete):
+        raise TypeError(f"Graph policies need a Discrete action space, got {action_space}.")
+
+
+class GraphPolicy(BasePolicy):
+    """Base of the graph policies: every ``n_agents`` consecutive slots form one graph.
+
+    Subclasses build their HGRN networks with :meth:`make_network` and implement :meth:`act`.
+    ``n_agents`` is not a saved hyperparameter: the algorithm sets it from the env it runs on, so
+    the same weights serve any agent count.
+
+    :param observation_space: Dict space with ``obs`` ``(obs_dim,)`` and ``neighbors`` ``(K,)``.
+    :param action_space: Discrete action space.
+    :param lr_schedule: learning-rate schedule of the optimiser.
+    :param hidden_dim: width H of the encoder, the attention layers and the recurrent state.
+    :param n_heads: attention heads.
+    :param head_dim: width of one head (``None``: ``hidden_dim // n_heads``).
+    :param communication: ``"hgat"`` (graph attention), ``"mean"`` (CommNet mean) or ``"none"``.
+    :param recurrent: use the GRU memory.
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        action_space: spaces.Discrete,
+        lr_schedule: Schedule,
+        hidden_dim: int = 64,
+        n_heads: int = 4,
+        head_dim: int | None = None,
+        communication: str = "hgat",
+        recurrent: bool = True,
+        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
+        optimizer_kwargs: dict[str, Any] | None = None,
+        normalize_images: bool = False,
+    ):
+        check_graph_spaces(observation_space, action_space)
+        super().__init__(
+            observation_space,
+            action_space,
+            optimizer_class=optimizer_class,
+            optimizer_kwargs=optimizer_kwargs,
+            normalize_images=False,
+        )
+        self.network_kwargs = dict(
+            hidden_dim=hidden_dim,
+            n_heads=n_heads,
+            head_dim=head_dim,
+            communication=communication,
+            recurrent=recurrent,
+        )
+        self.lr_schedule = lr_schedule
+        self.n_agents: int | None = None
+
+    def make_network(self) -> HGRN:
+        """A fresh HGRN mapping each agent's observation to one value per action."""
+        return HGRN(
+            obs_dim=self.observation_space["obs"].shape[0],
+            n_actions=int(self.action_space.n),
+            **self.network_kwargs,
+        )
+
+    @property
+    def state_dim(self) -> int:
+        """Width of the per-agent recurrent state (0 without recurrence)."""
+        return self.network_kwargs["hidden_dim"] if self.network_kwargs["recurrent"] else 0
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(self.network_kwargs, lr_schedule=self.lr_schedule)
+        return data
+
+    # --- graph batches ------------------------------------------------------------------------
+    def to_graphs(self, obs: GraphObs) -> tuple[th.Tensor, th.Tensor]:
+        """Slot batch -> graphs.
+
+        :param obs: ``{"obs": (n_slots, obs_dim), "neighbors": (n_slots, K)}`` tensors.
+        :return: observations ``(n_graphs, n_agents, obs_dim)`` float32 and neighbours
+            ``(n_graphs, n_agents, K)`` int64.
+        """
+        n_slots = obs["obs"].shape[0]
+        n_agents = self.n_agents
+        if n_agents is None:
+            raise RuntimeError("The policy does not know n_agents yet; attach a graph env to the model.")
+        if n_slots % n_agents != 0:
+            raise ValueError(
+                f"A batch of {n_slots} observations is not a whole number of graphs of {n_agents} "
+                "agents; predict() takes the observations of all slots of the graph VecEnv."
+            )
+        n_graphs = n_slots // n_agents
+        return (
+            obs["obs"].reshape(n_graphs, n_agents, -1).float(),
+            obs["neighbors"].reshape(n_graphs, n_agents, -1).long(),
+        )
+
+    def act(
+        self, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False
+    ) -> tuple[th.Tensor, th.Tensor]:
+        """Choose actions for a slot batch.
+
+        :param obs: slot batch of graph observations (see :meth:`to_graphs`).
+        :param hidden: ``(n_slots, state_dim)`` recurrent state.
+        :return: actions ``(n_slots,)`` and the new state ``(n_slots, state_dim)``.
+        """
+        raise NotImplementedError
+
+    def _predict(self, observation: GraphObs, deterministic: bool = False) -> th.Tensor:
+        hidden = th.zeros(observation["obs"].shape[0], self.state_dim, device=self.device)
+        return self.act(observation, hidden, deterministic)[0]
+
+    def predict(
+        self,
+        observation: dict[str, np.ndarray],
+        state: tuple[np.ndarray, ...] | None = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = False,
+    ) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+        """Actions for all slots, with the recurrent state threaded as in sb3-contrib's RecurrentPPO.
+
+        :param observation: ``{"obs": (n_slots, obs_dim), "neighbors": (n_slots, K)}``.
+        :param state: ``(hidden,)`` with ``hidden`` of shape ``(1, n_slots, state_dim)``; ``None``
+            starts from zeros.
+        :param episode_start: ``(n_slots,)``, true where ``observation`` is the first of an episode
+            (its state is reset to zero).
+        :return: actions ``(n_slots,)`` and the new state ``(hidden,)``.
+        """
+        self.set_training_mode(False)
+        obs_tensor, vectorized = self.obs_to_tensor(observation)
+        if not vectorized:
+            raise ValueError(
+                "predict() takes the observations of all slots of a graph VecEnv (a batch), not the "
+                "observation of a single agent."
+            )
+        n_slots = obs_tensor["obs"].shape[0]
+        hidden = np.zeros((n_slots, self.state_dim), dtype=np.float32) if state is None else state[0][0]
+        if hidden.shape != (n_slots, self.state_dim):
+            raise ValueError(
+                f"state has shape {(1, *hidden.shape)}, expected {(1, n_slots, self.state_dim)}."
+            )
+        if episode_start is not None:
+            hidden = hidden * (1.0 - np.asarray(episode_start, dtype=np.float32))[:, None]
+        with th.no_grad():
+            actions, new_hidden = self.act(
+                obs_tensor, th.as_tensor(hidden, dtype=th.float32, device=self.device), deterministic
+            )
+        return actions.cpu().numpy(), (new_hidden.cpu().numpy()[None],)

@@ -1,0 +1,304 @@
+"""Flatten many-agent PettingZoo environments into one SB3 ``VecEnv`` of graph observations.
+
+Slot layout: ``num_envs = n_copies * n_agents`` slots in copy-major order (copy 0 agents 0..N-1,
+copy 1 agents 0..N-1, ...), so any per-slot array reshapes to ``(n_copies, n_agents, ...)``.
+Each slot observes a dict with
+
+* ``"obs"``: ``(obs_dim,)`` the agent's local observation, in the env's own (compact) dtype;
+* ``"neighbors"``: ``(max_neighbors,)`` int32 indices of its neighbours within the same copy, the
+  agent itself first, ``-1`` for unused entries.
+
+The neighbour space's bounds do not depend on the agent count, so a model trained with N agents
+loads onto an env with M agents.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from pettingzoo import ParallelEnv
+from stable_baselines3.common.vec_env import VecEnv
+from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
+
+from sb3_hgrn.common.graph_env import GraphParallelEnv
+
+REGISTERED_ENVS = ("surviving_v0",)
+NEIGHBOR_INDEX_HIGH = np.iinfo(np.int32).max
+
+
+class ParallelEnvAdapter(GraphParallelEnv):
+    """Array API over any PettingZoo ``ParallelEnv`` that supplies its graph.
+
+    The wrapped env must give every agent the same spaces, have a ``max_neighbors`` attribute and a
+    ``neighbors()`` method returning ``(n_agents, max_neighbors)`` agent indices in
+    ``possible_agents`` order, the agent itself first (``-1`` = none).
+    """
+
+    def __init__(self, env: ParallelEnv):
+        self.env = env
+        self.possible_agents = list(env.possible_agents)
+        self.shared_observation_space = env.observation_space(self.possible_agents[0])
+        self.shared_action_space = env.action_space(self.possible_agents[0])
+        for agent in self.possible_agents[1:]:
+            if (
+                env.observation_space(agent) != self.shared_observation_space
+                or env.action_space(agent) != self.shared_action_space
+            ):
+                raise ValueError(
+                    f"Agent {agent!r} has other observation or action spaces than "
+                    f"{self.possible_agents[0]!r}; graph envs need one shared space for all agents."
+                )
+        if not callable(getattr(env, "neighbors", None)):
+            raise TypeError(
+                f"{type(env).__name__} supplies no communication graph: a ParallelEnv used with "
+                "make_graph_vec_env must define neighbors() -> (n_agents, max_neighbors) int array."
+            )
+        self.max_neighbors = int(env.max_neighbors)
+        self.render_mode = getattr(env, "render_mode", None)
+
+    def reset_arrays(self, seed: int | None = None, options: dict | None = None) -> np.ndarray:
+        observations, _ = self.env.reset(seed=seed, options=options)
+        return np.stack([observations[agent] for agent in self.possible_agents])
+
+    def step_arrays(self, actions: np.ndarray):
+        agents = self.possible_agents
+        observations, rewards, terminations, truncations, _ = self.env.step(
+            dict(zip(agents, actions.tolist(), strict=True))
+        )
+        if set(observations) != set(agents):
+            raise NotImplementedError(
+                "Agents left the episode before its end; graph envs keep every agent until the end."
+            )
+        return (
+            np.stack([observations[agent] for agent in agents]),
+            np.array([rewards[agent] for agent in agents], dtype=np.float32),
+            np.array([terminations[agent] for agent in agents], dtype=bool),
+            np.array([truncations[agent] for agent in agents], dtype=bool),
+            {},
+        )
+
+    def neighbors(self) -> np.ndarray:
+        return np.asarray(self.env.neighbors(), dtype=np.int64)
+
+    def render(self):
+        return self.env.render()
+
+    def close(self) -> None:
+        self.env.close()
+
+
+def as_graph_env(env: Any) -> GraphParallelEnv:
+    """Return ``env`` with the array API, or raise a ``TypeError`` naming what is wrong with it."""
+    if isinstance(env, GraphParallelEnv):
+        return env
+    if isinstance(env, ParallelEnv):
+        return ParallelEnvAdapter(env)
+    if isinstance(env, gym.Env):
+        raise TypeError(
+            f"Got the single-agent gymnasium env {type(env).__name__}; sb3_hgrn needs a many-agent "
+            "PettingZoo ParallelEnv with a communication graph (use stable-baselines3 directly for "
+            "single-agent envs)."
+        )
+    raise TypeError(f"Expected a PettingZoo ParallelEnv, got {type(env).__name__}.")
+
+
+class GraphVecEnv(VecEnv):
+    """SB3 ``VecEnv`` with one slot per agent of ``n_copies`` copies of a many-agent env.
+
+    Copies are stepped in this process (one Python call per copy, none per agent). A copy resets
+    when all its agents are done; its slots then report ``done=True``, the final observation in
+    ``info["terminal_observation"]``, ``info["TimeLimit.truncated"]`` for time-limit ends and the
+    team's episode figures in ``info["team_episode"]`` (see :meth:`_finish_episode`).
+
+    :param env_fns: one callable per copy, each returning a PettingZoo ``ParallelEnv``.
+    """
+
+    def __init__(self, env_fns: Sequence[Callable[[], Any]]):
+        if len(env_fns) == 0:
+            raise ValueError("GraphVecEnv needs at least one env copy.")
+        self.envs = [as_graph_env(fn()) for fn in env_fns]
+        first = self.envs[0]
+        self.n_agents = first.n_agents
+        self.n_copies = len(self.envs)
+        self.max_neighbors = first.max_neighbors
+        for env in self.envs[1:]:
+            if env.n_agents != self.n_agents:
+                raise ValueError(
+                    f"All env copies must have the same number of agents, got {env.n_agents} "
+                    f"and {self.n_agents}."
+                )
+        if self.n_agents < 2:
+            raise ValueError(f"A graph env needs at least two agents, got {self.n_agents}.")
+        obs_space = first.shared_observation_space
+        if not isinstance(obs_space, gym.spaces.Box) or len(obs_space.shape) != 1:
+            raise TypeError(f"Agent observations must be a 1-D Box space, got {obs_space}.")
+        observation_space = gym.spaces.Dict(
+            {
+                "obs": obs_space,
+                "neighbors": gym.spaces.Box(
+                    -1, NEIGHBOR_INDEX_HIGH, shape=(self.max_neighbors,), dtype=np.int32
+                ),
+            }
+        )
+        super().__init__(self.n_copies * self.n_agents, observation_space, first.shared_action_space)
+        self._seeds_per_copy: list[int | None] = [None] * self.n_copies
+        self._actions = np.zeros(self.num_envs, dtype=np.int64)
+        self._team_returns = np.zeros(self.n_copies, dtype=np.float64)
+        self._episode_lengths = np.zeros(self.n_copies, dtype=np.int64)
+
+    # --- VecEnv API ----------------------------------------------------------------------------
+    def reset(self) -> VecEnvObs:
+        observations = [
+            env.reset_arrays(seed=seed, options=self._options[copy * self.n_agents] or None)
+            for copy, (env, seed) in enumerate(zip(self.envs, self._seeds_per_copy, strict=True))
+        ]
+        self._seeds_per_copy = [None] * self.n_copies
+        self._reset_seeds()
+        self._reset_options()
+        self._team_returns[:] = 0.0
+        self._episode_lengths[:] = 0
+        self.reset_infos = [{} for _ in range(self.num_envs)]
+        return self._stack(observations, [env.neighbors() for env in self.envs])
+
+    def step_async(self, actions: np.ndarray) -> None:
+        actions = np.asarray(actions).reshape(-1)
+        if actions.shape[0] != self.num_envs:
+            raise ValueError(f"Expected {self.num_envs} actions (one per slot), got {actions.shape[0]}.")
+        self._actions = actions
+
+    def step_wait(self) -> VecEnvStepReturn:
+        n = self.n_agents
+        observations, neighbors, rewards, dones = [], [], [], []
+        infos: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
+        for copy, env in enumerate(self.envs):
+            obs, reward, terminated, truncated, team_info = env.step_arrays(
+                self._actions[copy * n : (copy + 1) * n]
+            )
+            self._team_returns[copy] += float(reward.sum())
+            self._episode_lengths[copy] += 1
+            done = terminated | truncated
+            graph = env.neighbors()
+            if done.all():
+                self._finish_episode(copy, obs, graph, terminated, truncated, team_info, infos)
+                obs, graph = env.reset_arrays(), env.neighbors()
+            elif done.any():
+                raise NotImplementedError(
+                    "Some agents ended their episode before the others; graph envs must keep every "
+                    "agent until the episode ends."
+                )
+            observations.append(obs)
+            neighbors.append(graph)
+            rewards.append(reward)
+            dones.append(np.full(n, done.all()))
+        return (
+            self._stack(observations, neighbors),
+            np.concatenate(rewards).astype(np.float32, copy=False),
+            np.concatenate(dones),
+            infos,
+        )
+
+    def _finish_episode(self, copy, obs, graph, terminated, truncated, team_info, infos) -> None:
+        """Fill the infos of every slot of ``copy`` at the end of its episode and zero its counters.
+
+        Each slot gets SB3's ``terminal_observation`` and ``TimeLimit.truncated``; all slots share
+        one ``team_episode`` dict with the team return ``r``, the length ``l``, the env's team
+        figures, and the whole graph's ``final_observation`` and ``terminated`` arrays.
+        """
+        neighbors = graph.astype(np.int32)
+        team_episode = {
+            "r": float(self._team_returns[copy]),
+            "l": int(self._episode_lengths[copy]),
+            **team_info,
+            "final_observation": {"obs": obs, "neighbors": neighbors},
+            "terminated": terminated,
+        }
+        time_limit = (truncated & ~terminated).tolist()
+        for agent in range(self.n_agents):
+            infos[copy * self.n_agents + agent] = {
+                "terminal_observation": {"obs": obs[agent], "neighbors": neighbors[agent]},
+                "TimeLimit.truncated": time_limit[agent],
+                "team_episode": team_episode,
+            }
+        self._team_returns[copy] = 0.0
+        self._episode_lengths[copy] = 0
+
+    def _stack(self, observations: list[np.ndarray], neighbors: list[np.ndarray]) -> dict[str, np.ndarray]:
+        return {
+            "obs": np.concatenate(observations),
+            "neighbors": np.concatenate(neighbors).astype(np.int32, copy=False),
+        }
+
+    def seed(self, seed: int | None = None) -> Sequence[None | int]:
+        """Seed copy ``c`` with ``seed + c`` at the next ``reset()``; returns the per-slot seeds."""
+        if seed is None:
+            seed = int(np.random.randint(0, np.iinfo(np.uint32).max - self.n_copies))
+        self._seeds_per_copy = [seed + copy for copy in range(self.n_copies)]
+        return [seed + slot // self.n_agents for slot in range(self.num_envs)]
+
+    def close(self) -> None:
+        for env in self.envs:
+            env.close()
+
+    def render(self, mode: str | None = None) -> np.ndarray | None:
+        """Render copy 0 (its ``render_mode`` is set through ``env_kwargs``)."""
+        return self.envs[0].render()
+
+    def get_images(self) -> Sequence[np.ndarray | None]:
+        return [env.render() for env in self.envs]
+
+    # --- attribute access: slot indices map to their copy --------------------------------------
+    def _copies(self, indices: VecEnvIndices) -> list[GraphParallelEnv]:
+        return [self.envs[slot // self.n_agents] for slot in self._get_indices(indices)]
+
+    def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
+        return [getattr(env, attr_name) for env in self._copies(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
+        for env in self._copies(indices):
+            setattr(env, attr_name, value)
+
+    def env_method(self, method_name: str, *method_args, indices: VecEnvIndices = None, **method_kwargs):
+        return [getattr(env, method_name)(*method_args, **method_kwargs) for env in self._copies(indices)]
+
+    def env_is_wrapped(self, wrapper_class: type[gym.Wrapper], indices: VecEnvIndices = None) -> list[bool]:
+        return [False for _ in self._get_indices(indices)]
+
+
+def _resolve_env_fn(env: str | Callable[..., Any]) -> Callable[..., Any]:
+    if isinstance(env, str):
+        if env not in REGISTERED_ENVS:
+            raise ValueError(f"Unknown env {env!r}; registered envs: {', '.join(REGISTERED_ENVS)}.")
+        return importlib.import_module(f"sb3_hgrn.envs.{env}").parallel_env
+    if callable(env):
+        return env
+    raise TypeError(
+        f"env must be a registered env name or a callable returning a ParallelEnv, got {type(env).__name__}."
+    )
+
+
+def make_graph_vec_env(
+    env: str | Callable[..., Any],
+    n_envs: int = 1,
+    seed: int | None = None,
+    env_kwargs: dict[str, Any] | None = None,
+) -> GraphVecEnv:
+    """Create a :class:`GraphVecEnv` of ``n_envs`` copies of a many-agent env.
+
+    :param env: a registered env name (``"surviving_v0"``) or a callable returning a PettingZoo
+        ``ParallelEnv`` (called with ``**env_kwargs``).
+    :param n_envs: number of env copies; the VecEnv has ``n_envs * n_agents`` slots.
+    :param seed: copy ``c`` is seeded with ``seed + c`` at the first reset.
+    :param env_kwargs: keyword arguments for the env constructor.
+    """
+    if n_envs < 1:
+        raise ValueError(f"n_envs must be >= 1, got {n_envs}.")
+    env_fn = _resolve_env_fn(env)
+    kwargs = dict(env_kwargs or {})
+    vec_env = GraphVecEnv([lambda: env_fn(**kwargs) for _ in range(n_envs)])
+    if seed is not None:
+        vec_env.seed(seed)
+    return vec_env

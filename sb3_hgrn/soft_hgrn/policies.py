@@ -1,0 +1,69 @@
+"""Soft-HGRN policy: an HGRN Q-network, its target copy, and the Boltzmann policy softmax(Q / alpha)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.type_aliases import Schedule
+
+from sb3_hgrn.common.policies import GraphObs, GraphPolicy
+from sb3_hgrn.common.temperature import EntropyTemperature
+
+
+class SoftHGRNPolicy(GraphPolicy):
+    """Q-network and target Q-network (HGRN) with a learned temperature.
+
+    :param stochastic: sample actions from ``softmax(Q / alpha)``; ``False`` acts greedily (the
+        deterministic ``-S`` variant, explored with epsilon-greedy by the algorithm).
+    :param alpha_log_space: learn ``log(alpha)`` instead of alpha itself.
+    Other parameters: see :class:`~sb3_hgrn.common.policies.GraphPolicy`.
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        action_space: spaces.Discrete,
+        lr_schedule: Schedule,
+        stochastic: bool = True,
+        alpha_log_space: bool = False,
+        **kwargs: Any,
+    ):
+        super().__init__(observation_space, action_space, lr_schedule, **kwargs)
+        self.stochastic = stochastic
+        self.alpha_log_space = alpha_log_space
+        self.q_net = self.make_network()
+        self.q_net_target = self.make_network()
+        self.q_net_target.load_state_dict(self.q_net.state_dict())
+        self.q_net_target.requires_grad_(False)
+        self.q_net_target.train(False)
+        self.temperature = EntropyTemperature(log_space=alpha_log_space)
+        self.optimizer = self.optimizer_class(
+            self.q_net.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs
+        )
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(stochastic=self.stochastic, alpha_log_space=self.alpha_log_space)
+        return data
+
+    def act(
+        self, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False
+    ) -> tuple[th.Tensor, th.Tensor]:
+        observations, neighbors = self.to_graphs(obs)
+        n_graphs, n_agents = observations.shape[:2]
+        q_values, new_hidden = self.q_net(observations, neighbors, hidden.reshape(n_graphs, n_agents, -1))
+        if deterministic or not self.stochastic:
+            actions = q_values.argmax(dim=-1)
+        else:
+            logits = q_values / self.temperature.alpha.detach()
+            actions = th.distributions.Categorical(logits=logits).sample()
+        return actions.reshape(-1), new_hidden.reshape(n_graphs * n_agents, -1)
+
+    def forward(self, obs: GraphObs, deterministic: bool = False) -> th.Tensor:
+        return self._predict(obs, deterministic)
+
+    def set_training_mode(self, mode: bool) -> None:
+        self.q_net.train(mode)
+        self.training = mode

@@ -1,0 +1,201 @@
+"""Soft-HGRN: soft Q-learning on graphs with a temperature that tracks a target action entropy."""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import numpy as np
+import torch as th
+import torch.nn.functional as F
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.utils import polyak_update
+
+from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
+from sb3_hgrn.common.temperature import TemperatureController, categorical_entropy, target_entropy
+from sb3_hgrn.soft_hgrn.policies import SoftHGRNPolicy
+
+
+def soft_value(q_values: th.Tensor, alpha: th.Tensor) -> th.Tensor:
+    """``alpha * logsumexp(Q / alpha)`` over the last axis: ``(...)`` from ``(..., n_actions)``."""
+    return alpha * th.logsumexp(q_values / alpha, dim=-1)
+
+
+class SoftHGRN(GraphOffPolicyAlgorithm):
+    """Soft-HGRN (soft Q-learning with HGRN, Ye et al., AAAI 2022).
+
+    The policy is ``softmax(Q / alpha)``; the critic regresses on
+    ``r + gamma * (1 - terminated) * alpha * logsumexp(Q_target(o', .) / alpha)`` and alpha is
+    learned so that the mean action entropy tracks ``target_entropy_ratio * log(n_actions)``.
+    With ``stochastic=False`` it is the deterministic ``-S`` variant: greedy actions, hard-max
+    targets and epsilon-greedy exploration.
+
+    Units as in SB3 (see :class:`~sb3_hgrn.common.off_policy.GraphOffPolicyAlgorithm`): timesteps,
+    ``learning_starts`` and ``buffer_size`` count agent-steps, ``train_freq`` vec-steps,
+    ``batch_size`` graphs, ``target_update_interval`` gradient steps.
+
+    :param policy: ``"GraphPolicy"`` or a :class:`SoftHGRNPolicy` subclass.
+    :param env: graph VecEnv from :func:`sb3_hgrn.make_graph_vec_env` (or a registered env name).
+    :param learning_rate: Adam learning rate of the Q-network (float or schedule).
+    :param buffer_size: replay capacity in agent-transitions.
+    :param learning_starts: agent-steps of uniform random actions before learning starts.
+    :param batch_size: graphs per gradient step.
+    :param tau: target update coefficient (1.0 = hard copy).
+    :param gamma: discount factor.
+    :param train_freq: train every ``train_freq`` vec-steps.
+    :param gradient_steps: gradient steps per training round.
+    :param target_update_interval: gradient steps between target updates.
+    :param target_entropy_ratio: ``p_alpha``; the target entropy is ``p_alpha * log(n_actions)``.
+    :param alpha_init: initial temperature.
+    :param alpha_optimizer: ``"adam"`` or ``"sgd"`` for the temperature.
+    :param alpha_learning_rate: learning rate of the temperature optimiser.
+    :param stochastic: ``False`` gives the deterministic ``-S`` variant.
+    :param exploration_fraction: fraction of training over which epsilon decays.
+    :param exploration_initial_eps: initial probability of a uniform random action per agent
+        (``None``: 0 for the stochastic policy, 1 for ``stochastic=False``).
+    :param exploration_final_eps: final epsilon (``None``: 0 stochastic, 0.05 deterministic).
+    :param max_grad_norm: gradient-norm clip of the Q-network.
+    :param hidden_dtype: storage dtype of recurrent states in the replay buffer.
+    :param policy_kwargs: network options (``hidden_dim``, ``n_heads``, ``head_dim``,
+        ``communication``, ``recurrent``, ``alpha_log_space``, optimiser).
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"GraphPolicy": SoftHGRNPolicy}
+    policy: SoftHGRNPolicy
+
+    def __init__(
+        self,
+        policy: str | type[SoftHGRNPolicy],
+        env: GymEnv | str | None,
+        learning_rate: float | Schedule = 1e-3,
+        buffer_size: int = 1_000_000,
+        learning_starts: int = 10_000,
+        batch_size: int = 32,
+        tau: float = 1.0,
+        gamma: float = 0.95,
+        train_freq: int | tuple[int, str] = 4,
+        gradient_steps: int = 1,
+        target_update_interval: int = 5,
+        target_entropy_ratio: float = 0.2,
+        alpha_init: float = 0.1,
+        alpha_optimizer: str = "adam",
+        alpha_learning_rate: float = 1e-3,
+        stochastic: bool = True,
+        exploration_fraction: float = 0.1,
+        exploration_initial_eps: float | None = None,
+        exploration_final_eps: float | None = None,
+        max_grad_norm: float = 10.0,
+        hidden_dtype: str = "float16",
+        policy_kwargs: dict[str, Any] | None = None,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ):
+        if exploration_initial_eps is None:
+            exploration_initial_eps = 0.0 if stochastic else 1.0
+        if exploration_final_eps is None:
+            exploration_final_eps = 0.0 if stochastic else 0.05
+        policy_kwargs = {**(policy_kwargs or {}), "stochastic": stochastic}
+        super().__init__(
+            policy,
+            env,
+            learning_rate,
+            buffer_size=buffer_size,
+            learning_starts=learning_starts,
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            train_freq=train_freq,
+            gradient_steps=gradient_steps,
+            exploration_fraction=exploration_fraction,
+            exploration_initial_eps=exploration_initial_eps,
+            exploration_final_eps=exploration_final_eps,
+            hidden_dtype=hidden_dtype,
+            policy_kwargs=policy_kwargs,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            verbose=verbose,
+            seed=seed,
+            device=device,
+        )
+        self.target_update_interval = target_update_interval
+        self.target_entropy_ratio = target_entropy_ratio
+        self.alpha_init = alpha_init
+        self.alpha_optimizer = alpha_optimizer
+        self.alpha_learning_rate = alpha_learning_rate
+        self.stochastic = stochastic
+        self.max_grad_norm = max_grad_norm
+        if _init_setup_model:
+            self._setup_model()
+
+    def _setup_model(self) -> None:
+        super()._setup_model()
+        temperature = self.policy.temperature
+        with th.no_grad():
+            temperature.param.fill_(np.log(self.alpha_init) if temperature.log_space else self.alpha_init)
+        self.target_entropy = target_entropy(self.target_entropy_ratio, int(self.action_space.n))
+        self.temperature = TemperatureController(
+            temperature, self.target_entropy, self.alpha_optimizer, self.alpha_learning_rate
+        )
+
+    def _next_value(self, next_q: th.Tensor, alpha: th.Tensor) -> th.Tensor:
+        """State value ``(batch, n_agents)`` of the next observations from target Q-values
+        ``(batch, n_agents, n_actions)``: the soft value, or the hard max for ``stochastic=False``."""
+        return soft_value(next_q, alpha) if self.stochastic else next_q.max(dim=-1).values
+
+    def train(self, gradient_steps: int, batch_size: int = 32) -> None:
+        self.policy.set_training_mode(True)
+        self._update_learning_rate(self.policy.optimizer)
+        q_net, q_net_target = self.policy.q_net, self.policy.q_net_target
+        losses, entropies, alpha_gradients = [], [], []
+        for _ in range(gradient_steps):
+            batch = self.replay_buffer.sample(batch_size)
+            alpha = self.policy.temperature.alpha.detach()
+            with th.no_grad():
+                next_q, _ = q_net_target(batch.next_observations, batch.next_neighbors, batch.next_hidden)
+                target_q = batch.rewards + self.gamma * (1.0 - batch.terminated) * self._next_value(
+                    next_q, alpha
+                )
+            q_values, _ = q_net(batch.observations, batch.neighbors, batch.hidden)
+            taken_q = q_values.gather(-1, batch.actions.unsqueeze(-1)).squeeze(-1)
+            loss = F.mse_loss(taken_q, target_q)
+            self.policy.optimizer.zero_grad()
+            loss.backward()
+            th.nn.utils.clip_grad_norm_(q_net.parameters(), self.max_grad_norm)
+            self.policy.optimizer.step()
+
+            entropy = categorical_entropy(q_values.detach() / alpha).mean()
+            if self.stochastic:
+                alpha_gradients.append(self.temperature.update(entropy))
+            losses.append(loss.item())
+            entropies.append(entropy.item())
+            self._n_updates += 1
+            if self._n_updates % self.target_update_interval == 0:
+                polyak_update(q_net.parameters(), q_net_target.parameters(), self.tau)
+
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/q_loss", float(np.mean(losses)))
+        self.logger.record("train/entropy", float(np.mean(entropies)))
+        self.logger.record("train/target_entropy", self.target_entropy)
+        self.logger.record("train/alpha", float(self.policy.temperature.alpha.detach()))
+        if alpha_gradients:
+            self.logger.record("train/alpha_grad", float(np.mean(alpha_gradients)))
+
+    def learn(
+        self,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str = "SoftHGRN",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SoftHGRN:
+        return super().learn(
+            total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar
+        )
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        return ["policy", "policy.optimizer", "temperature.optimizer"], []

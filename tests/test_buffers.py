@@ -1,0 +1,92 @@
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+
+from sb3_hgrn.common.buffers import GraphReplayBuffer, smallest_index_dtype
+
+N_AGENTS, N_COPIES, STATE = 3, 2, 4
+
+
+def make_buffer(steps: int = 5) -> GraphReplayBuffer:
+    obs_space = gym.spaces.Dict(
+        {
+            "obs": gym.spaces.Box(-1, 10, shape=(2,), dtype=np.int8),
+            "neighbors": gym.spaces.Box(-1, 2**31 - 1, shape=(2,), dtype=np.int32),
+        }
+    )
+    n_envs = N_AGENTS * N_COPIES
+    return GraphReplayBuffer(
+        steps * n_envs, obs_space, gym.spaces.Discrete(5), device="cpu",
+        n_envs=n_envs, n_agents=N_AGENTS, state_dim=STATE, hidden_dtype="float32",
+    )  # fmt: skip
+
+
+def step_data(t: int) -> dict:
+    """Slot values encode (step, slot) so samples can be traced back."""
+    n_envs = N_AGENTS * N_COPIES
+    slots = np.arange(n_envs)
+    obs = {"obs": np.stack([np.full(n_envs, t), slots], 1).astype(np.int8),
+           "neighbors": np.stack([slots % N_AGENTS, np.full(n_envs, -1)], 1).astype(np.int32)}  # fmt: skip
+    return dict(
+        obs=obs,
+        next_obs={"obs": obs["obs"] + np.array([100, 0], dtype=np.int8), "neighbors": obs["neighbors"]},
+        actions=slots % 5,
+        rewards=(10 * t + slots).astype(np.float32),
+        terminated=np.zeros(n_envs, dtype=bool),
+        hidden=np.full((n_envs, STATE), t, dtype=np.float32),
+        episode_starts=np.full(n_envs, t == 2),
+        next_hidden=np.full((n_envs, STATE), t + 1, dtype=np.float32),
+    )
+
+
+def test_samples_are_whole_graphs_with_matching_fields():
+    buffer = make_buffer()
+    for t in range(4):
+        buffer.add(**step_data(t))
+    batch = buffer.sample(64)
+    assert batch.observations.shape == (64, N_AGENTS, 2)
+    assert batch.neighbors.shape == (64, N_AGENTS, 2) and batch.hidden.shape == (64, N_AGENTS, STATE)
+    steps = batch.observations[:, 0, 0]
+    slots = batch.observations[:, :, 1]
+    # one graph = consecutive slots of one copy, all from the same step
+    assert ((slots - slots[:, :1]) == np.arange(N_AGENTS)).all()
+    assert (slots[:, 0] % N_AGENTS == 0).all()
+    assert (batch.observations[:, :, 0] == steps[:, None]).all()
+    np.testing.assert_array_equal(batch.rewards, 10 * steps[:, None] + slots)
+    np.testing.assert_array_equal(
+        batch.next_observations[:, :, 0], (steps[:, None] + 100).expand(-1, N_AGENTS)
+    )
+    np.testing.assert_array_equal(batch.neighbors[:, :, 1], -1)
+    # state fed in: zero at the episode start (step 2), else the stored one; state out: step + 1
+    expected_in = th.where(steps == 2, 0.0, steps)
+    np.testing.assert_array_equal(batch.hidden[:, :, 0], expected_in[:, None].expand(-1, N_AGENTS))
+    np.testing.assert_array_equal(batch.next_hidden[:, :, 0], (steps + 1)[:, None].expand(-1, N_AGENTS))
+    assert set(steps.tolist()) == {0.0, 1.0, 2.0, 3.0}
+
+
+def test_full_buffer_never_samples_the_overwritten_row():
+    buffer = make_buffer(steps=5)
+    for t in range(7):  # wraps: rows hold steps 5, 6, 2, 3, 4; row 2 (pos) is excluded
+        buffer.add(**step_data(t))
+    assert buffer.full and buffer.pos == 2
+    steps = set(buffer.sample(400).observations[:, 0, 0].tolist())
+    assert steps == {3.0, 4.0, 5.0, 6.0}
+    batch = buffer.sample(400)
+    np.testing.assert_array_equal(batch.next_hidden[:, 0, 0], batch.observations[:, 0, 0] + 1)
+
+
+def test_compact_storage_dtypes():
+    buffer = make_buffer()
+    assert buffer.observations.dtype == np.int8
+    assert buffer.neighbors.dtype == np.int8 and buffer.actions.dtype == np.uint8
+    assert smallest_index_dtype(128) == np.int8 and smallest_index_dtype(129) == np.int16
+    assert smallest_index_dtype(1000) == np.int16
+    assert buffer.nbytes > 0
+
+
+def test_empty_buffer_and_bad_slot_count():
+    with pytest.raises(RuntimeError, match="empty"):
+        make_buffer().sample(4)
+    with pytest.raises(ValueError, match="multiple"):
+        GraphReplayBuffer(100, make_buffer().observation_space, gym.spaces.Discrete(2), n_envs=5, n_agents=3)
