@@ -11,12 +11,9 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 from sb3_hgrn import GraphEvalCallback, SoftHGRN, evaluate_graph_policy, make_graph_vec_env
 from sb3_hgrn.soft_hgrn.soft_hgrn import soft_value
 from tests.toy_envs import DictOnlyEnv, NeighborBitEnv
+from tests.toy_envs import bit_vec_env as bit_env
 
 SMALL = dict(hidden_dim=16, n_heads=2)
-
-
-def bit_env(n_envs=4, n_agents=4, seed=0):
-    return make_graph_vec_env(lambda: NeighborBitEnv(n_agents, max_cycles=8), n_envs=n_envs, seed=seed)
 
 
 def quick_model(env, **kwargs):
@@ -194,3 +191,15 @@ def test_load_onto_env_with_other_spaces_fails(tmp_path):
     model.save(tmp_path / "m.zip")
     with pytest.raises(ValueError, match="spaces do not match"):
         SoftHGRN.load(tmp_path / "m.zip", env=make_graph_vec_env(DictOnlyEnv))
+
+
+def test_same_seed_gives_the_same_training_run():
+    parameters = []
+    for _ in range(2):
+        model = quick_model(bit_env(n_envs=2, seed=3), seed=11)
+        model.learn(8 * 30)
+        parameters.append(th.cat([p.detach().flatten() for p in model.policy.parameters()]))
+    assert th.equal(parameters[0], parameters[1])
+    other = quick_model(bit_env(n_envs=2, seed=3), seed=12)
+    other.learn(8 * 30)
+    assert not th.equal(parameters[0], th.cat([p.detach().flatten() for p in other.policy.parameters()]))

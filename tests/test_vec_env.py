@@ -82,3 +82,16 @@ def test_unknown_env_name_and_bad_arguments():
     env.reset()
     with pytest.raises(ValueError, match="actions"):
         env.step(np.zeros(3, dtype=int))
+
+
+def test_registered_surviving_env_and_render():
+    env = make_graph_vec_env(
+        "surviving_v0", n_envs=2, seed=0, env_kwargs=dict(n_agents=10, map_size=12, render_mode="rgb_array")
+    )
+    obs = env.reset()
+    assert env.num_envs == 20 and obs["obs"].dtype == np.int8
+    assert (obs["neighbors"][:10, 0] == np.arange(10)).all()  # self first, indices within the copy
+    assert (obs["neighbors"][10:, 0] == np.arange(10)).all()
+    frame = env.render()
+    assert frame.ndim == 3 and frame.shape[2] == 3 and frame.dtype == np.uint8
+    assert env.render_mode == "rgb_array"

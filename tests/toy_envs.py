@@ -82,3 +82,10 @@ class DictOnlyEnv(ParallelEnv):
     def neighbors(self):
         n = len(self.possible_agents)
         return (np.arange(n)[:, None] + np.arange(n)[None, :]) % n
+
+
+def bit_vec_env(n_envs: int = 4, n_agents: int = 4, seed: int = 0):
+    """Graph VecEnv of ``n_envs`` copies of :class:`NeighborBitEnv` with 8-step episodes."""
+    from sb3_hgrn import make_graph_vec_env
+
+    return make_graph_vec_env(lambda: NeighborBitEnv(n_agents, max_cycles=8), n_envs=n_envs, seed=seed)

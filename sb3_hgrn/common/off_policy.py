@@ -18,6 +18,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_hgrn.common.buffers import GraphReplayBuffer
 from sb3_hgrn.common.policies import GraphPolicy, check_graph_spaces
+from sb3_hgrn.common.temperature import TemperatureController, target_entropy
 from sb3_hgrn.common.vec_env import make_graph_vec_env
 
 
@@ -47,14 +48,19 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
 
     Units follow SB3: ``total_timesteps``, ``learning_starts`` and ``buffer_size`` count
     agent-steps (one vec-step of ``n_copies`` copies of ``n_agents`` agents is
-    ``n_copies * n_agents`` of them), ``train_freq`` counts vec-steps, ``batch_size`` counts graphs
-    and ``log_interval`` counts team episodes (one per env copy).
+    ``n_copies * n_agents`` of them), ``train_freq`` counts vec-steps, ``batch_size`` counts graphs,
+    ``target_update_interval`` counts gradient steps and ``log_interval`` counts team episodes (one
+    per env copy).
 
     The recurrent state of every agent is threaded through collection (also during the random
     warm-up), reset at episode starts, and stored with each transition. Exploration mixes in a
     uniform random action per agent with probability ``exploration_rate``, scheduled linearly from
     ``exploration_initial_eps`` to ``exploration_final_eps`` over ``exploration_fraction`` of
-    training.
+    training (by default off for stochastic policies, 1.0 -> 0.05 for ``stochastic=False``).
+
+    The soft algorithms share a temperature alpha learned toward the target entropy
+    ``target_entropy_ratio * log(n_actions)`` (see :mod:`sb3_hgrn.common.temperature`); the policy
+    owns it as ``policy.temperature``. ``learn_alpha=False`` keeps alpha at ``alpha_init``.
     """
 
     policy: GraphPolicy
@@ -72,19 +78,31 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         gamma: float,
         train_freq: int | tuple[int, str],
         gradient_steps: int,
+        target_update_interval: int,
+        target_entropy_ratio: float,
+        alpha_init: float,
+        learn_alpha: bool,
+        alpha_optimizer: str,
+        alpha_learning_rate: float,
+        stochastic: bool,
         exploration_fraction: float,
-        exploration_initial_eps: float,
-        exploration_final_eps: float,
-        hidden_dtype: str = "float16",
-        policy_kwargs: dict[str, Any] | None = None,
-        stats_window_size: int = 100,
-        tensorboard_log: str | None = None,
-        verbose: int = 0,
-        seed: int | None = None,
-        device: th.device | str = "auto",
+        exploration_initial_eps: float | None,
+        exploration_final_eps: float | None,
+        max_grad_norm: float,
+        hidden_dtype: str,
+        policy_kwargs: dict[str, Any] | None,
+        stats_window_size: int,
+        tensorboard_log: str | None,
+        verbose: int,
+        seed: int | None,
+        device: th.device | str,
     ):
         if env is not None:
             env = check_graph_env(env)
+        if exploration_initial_eps is None:
+            exploration_initial_eps = 0.0 if stochastic else 1.0
+        if exploration_final_eps is None:
+            exploration_final_eps = 0.0 if stochastic else 0.05
         super().__init__(
             policy,
             env,
@@ -96,7 +114,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
             gamma=gamma,
             train_freq=train_freq,
             gradient_steps=gradient_steps,
-            policy_kwargs=policy_kwargs,
+            policy_kwargs={**(policy_kwargs or {}), "stochastic": stochastic},
             stats_window_size=stats_window_size,
             tensorboard_log=tensorboard_log,
             verbose=verbose,
@@ -107,10 +125,18 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
             sde_support=False,
             supported_action_spaces=(spaces.Discrete,),
         )
+        self.target_update_interval = target_update_interval
+        self.target_entropy_ratio = target_entropy_ratio
+        self.alpha_init = alpha_init
+        self.learn_alpha = learn_alpha
+        self.alpha_optimizer = alpha_optimizer
+        self.alpha_learning_rate = alpha_learning_rate
+        self.stochastic = stochastic
         self.exploration_fraction = exploration_fraction
         self.exploration_initial_eps = exploration_initial_eps
         self.exploration_final_eps = exploration_final_eps
         self.exploration_rate = exploration_initial_eps
+        self.max_grad_norm = max_grad_norm
         self.hidden_dtype = hidden_dtype
         self.n_agents = env.n_agents if env is not None else None
         self._last_hidden: np.ndarray | None = None
@@ -134,6 +160,28 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
             self.exploration_initial_eps, self.exploration_final_eps, self.exploration_fraction
         )
         self._team_episodes = deque(maxlen=self._stats_window_size)
+        temperature = self.policy.temperature
+        with th.no_grad():
+            temperature.param.fill_(np.log(self.alpha_init) if temperature.log_space else self.alpha_init)
+        self.target_entropy = target_entropy(self.target_entropy_ratio, int(self.action_space.n))
+        self.temperature = TemperatureController(
+            temperature, self.target_entropy, self.alpha_optimizer, self.alpha_learning_rate
+        )
+
+    def _update_temperature(self, entropy: th.Tensor) -> float | None:
+        """One temperature step toward the target given the batch's mean entropy; returns alpha's
+        gradient, or ``None`` when alpha is not learned."""
+        if not (self.stochastic and self.learn_alpha):
+            return None
+        return self.temperature.update(entropy)
+
+    def _record_temperature(self, entropies: list[float], alpha_gradients: list[float]) -> None:
+        """Log the mean policy entropy of the last training round, its target, alpha and its gradient."""
+        self.logger.record("train/entropy", float(np.mean(entropies)))
+        self.logger.record("train/target_entropy", self.target_entropy)
+        self.logger.record("train/alpha", float(self.policy.temperature.alpha.detach()))
+        if alpha_gradients:
+            self.logger.record("train/alpha_grad", float(np.mean(alpha_gradients)))
 
     def _make_replay_buffer(self) -> None:
         self.replay_buffer = GraphReplayBuffer(
@@ -161,6 +209,13 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
     @staticmethod
     def _wrap_env(env: GymEnv, verbose: int = 0, monitor_wrapper: bool = True) -> VecEnv:
         return check_graph_env(env)
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        return ["policy", *self._optimizer_names(), "temperature.optimizer"], []
+
+    def _optimizer_names(self) -> list[str]:
+        """Attribute paths of the network optimisers to save (``policy.optimizer`` by default)."""
+        return ["policy.optimizer"]
 
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "_last_hidden", "_team_episodes", "exploration_schedule"]

@@ -11,6 +11,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import Schedule
 
 from sb3_hgrn.common.hgrn import HGRN
+from sb3_hgrn.common.temperature import EntropyTemperature
 
 GraphObs = dict[str, th.Tensor]
 
@@ -31,9 +32,11 @@ def check_graph_spaces(observation_space: spaces.Space, action_space: spaces.Spa
 class GraphPolicy(BasePolicy):
     """Base of the graph policies: every ``n_agents`` consecutive slots form one graph.
 
-    Subclasses build their HGRN networks with :meth:`make_network` and implement :meth:`act`.
-    ``n_agents`` is not a saved hyperparameter: the algorithm sets it from the env it runs on, so
-    the same weights serve any agent count.
+    Subclasses build their HGRN networks with :meth:`make_network`, list those whose recurrent
+    state is carried between steps in :attr:`recurrent_networks` (the carried state is their states
+    concatenated in that order) and implement :meth:`act`. ``n_agents`` is not a saved
+    hyperparameter: the algorithm sets it from the env it runs on, so the same weights serve any
+    agent count.
 
     :param observation_space: Dict space with ``obs`` ``(obs_dim,)`` and ``neighbors`` ``(K,)``.
     :param action_space: Discrete action space.
@@ -43,6 +46,8 @@ class GraphPolicy(BasePolicy):
     :param head_dim: width of one head (``None``: ``hidden_dim // n_heads``).
     :param communication: ``"hgat"`` (graph attention), ``"mean"`` (CommNet mean) or ``"none"``.
     :param recurrent: use the GRU memory.
+    :param stochastic: sample actions from the policy; ``False`` acts greedily (the ``-S`` variants).
+    :param alpha_log_space: learn ``log(alpha)`` instead of the temperature alpha itself.
     """
 
     def __init__(
@@ -55,6 +60,8 @@ class GraphPolicy(BasePolicy):
         head_dim: int | None = None,
         communication: str = "hgat",
         recurrent: bool = True,
+        stochastic: bool = True,
+        alpha_log_space: bool = False,
         optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: dict[str, Any] | None = None,
         normalize_images: bool = False,
@@ -75,24 +82,44 @@ class GraphPolicy(BasePolicy):
             recurrent=recurrent,
         )
         self.lr_schedule = lr_schedule
+        self.stochastic = stochastic
+        self.alpha_log_space = alpha_log_space
+        self.temperature = EntropyTemperature(log_space=alpha_log_space)
         self.n_agents: int | None = None
 
-    def make_network(self) -> HGRN:
-        """A fresh HGRN mapping each agent's observation to one value per action."""
+    def make_network(self, **overrides: Any) -> HGRN:
+        """A fresh HGRN mapping each agent's observation to one value per action.
+
+        :param overrides: network options replacing the policy's (e.g. ``communication="none"``).
+        """
         return HGRN(
             obs_dim=self.observation_space["obs"].shape[0],
             n_actions=int(self.action_space.n),
-            **self.network_kwargs,
+            **{**self.network_kwargs, **overrides},
         )
 
     @property
+    def recurrent_networks(self) -> list[HGRN]:
+        """The networks whose recurrent states are carried between steps, in state order."""
+        raise NotImplementedError
+
+    @property
     def state_dim(self) -> int:
-        """Width of the per-agent recurrent state (0 without recurrence)."""
-        return self.network_kwargs["hidden_dim"] if self.network_kwargs["recurrent"] else 0
+        """Width of the carried per-agent state (0 without recurrence)."""
+        return sum(network.state_dim for network in self.recurrent_networks)
+
+    def split_state(self, state: th.Tensor) -> list[th.Tensor]:
+        """Split a carried state ``(..., state_dim)`` into one state per recurrent network."""
+        return list(state.split([network.state_dim for network in self.recurrent_networks], dim=-1))
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
-        data.update(self.network_kwargs, lr_schedule=self.lr_schedule)
+        data.update(
+            self.network_kwargs,
+            lr_schedule=self.lr_schedule,
+            stochastic=self.stochastic,
+            alpha_log_space=self.alpha_log_space,
+        )
         return data
 
     # --- graph batches ------------------------------------------------------------------------

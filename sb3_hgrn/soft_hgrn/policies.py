@@ -8,17 +8,15 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.type_aliases import Schedule
 
+from sb3_hgrn.common.hgrn import HGRN
 from sb3_hgrn.common.policies import GraphObs, GraphPolicy
-from sb3_hgrn.common.temperature import EntropyTemperature
 
 
 class SoftHGRNPolicy(GraphPolicy):
     """Q-network and target Q-network (HGRN) with a learned temperature.
 
-    :param stochastic: sample actions from ``softmax(Q / alpha)``; ``False`` acts greedily (the
-        deterministic ``-S`` variant, explored with epsilon-greedy by the algorithm).
-    :param alpha_log_space: learn ``log(alpha)`` instead of alpha itself.
-    Other parameters: see :class:`~sb3_hgrn.common.policies.GraphPolicy`.
+    Acts by sampling ``softmax(Q / alpha)``, or greedily with ``deterministic=True`` or
+    ``stochastic=False``. Parameters: see :class:`~sb3_hgrn.common.policies.GraphPolicy`.
     """
 
     def __init__(
@@ -26,27 +24,21 @@ class SoftHGRNPolicy(GraphPolicy):
         observation_space: spaces.Dict,
         action_space: spaces.Discrete,
         lr_schedule: Schedule,
-        stochastic: bool = True,
-        alpha_log_space: bool = False,
         **kwargs: Any,
     ):
         super().__init__(observation_space, action_space, lr_schedule, **kwargs)
-        self.stochastic = stochastic
-        self.alpha_log_space = alpha_log_space
         self.q_net = self.make_network()
         self.q_net_target = self.make_network()
         self.q_net_target.load_state_dict(self.q_net.state_dict())
         self.q_net_target.requires_grad_(False)
         self.q_net_target.train(False)
-        self.temperature = EntropyTemperature(log_space=alpha_log_space)
         self.optimizer = self.optimizer_class(
             self.q_net.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs
         )
 
-    def _get_constructor_parameters(self) -> dict[str, Any]:
-        data = super()._get_constructor_parameters()
-        data.update(stochastic=self.stochastic, alpha_log_space=self.alpha_log_space)
-        return data
+    @property
+    def recurrent_networks(self) -> list[HGRN]:
+        return [self.q_net]
 
     def act(
         self, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False

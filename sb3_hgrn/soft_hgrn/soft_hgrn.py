@@ -12,7 +12,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.utils import polyak_update
 
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
-from sb3_hgrn.common.temperature import TemperatureController, categorical_entropy, target_entropy
+from sb3_hgrn.common.temperature import categorical_entropy
 from sb3_hgrn.soft_hgrn.policies import SoftHGRNPolicy
 
 
@@ -47,6 +47,7 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
     :param target_update_interval: gradient steps between target updates.
     :param target_entropy_ratio: ``p_alpha``; the target entropy is ``p_alpha * log(n_actions)``.
     :param alpha_init: initial temperature.
+    :param learn_alpha: learn the temperature (``False`` keeps ``alpha_init``).
     :param alpha_optimizer: ``"adam"`` or ``"sgd"`` for the temperature.
     :param alpha_learning_rate: learning rate of the temperature optimiser.
     :param stochastic: ``False`` gives the deterministic ``-S`` variant.
@@ -78,6 +79,7 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
         target_update_interval: int = 5,
         target_entropy_ratio: float = 0.2,
         alpha_init: float = 0.1,
+        learn_alpha: bool = True,
         alpha_optimizer: str = "adam",
         alpha_learning_rate: float = 1e-3,
         stochastic: bool = True,
@@ -94,11 +96,6 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ):
-        if exploration_initial_eps is None:
-            exploration_initial_eps = 0.0 if stochastic else 1.0
-        if exploration_final_eps is None:
-            exploration_final_eps = 0.0 if stochastic else 0.05
-        policy_kwargs = {**(policy_kwargs or {}), "stochastic": stochastic}
         super().__init__(
             policy,
             env,
@@ -110,9 +107,17 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
             gamma=gamma,
             train_freq=train_freq,
             gradient_steps=gradient_steps,
+            target_update_interval=target_update_interval,
+            target_entropy_ratio=target_entropy_ratio,
+            alpha_init=alpha_init,
+            learn_alpha=learn_alpha,
+            alpha_optimizer=alpha_optimizer,
+            alpha_learning_rate=alpha_learning_rate,
+            stochastic=stochastic,
             exploration_fraction=exploration_fraction,
             exploration_initial_eps=exploration_initial_eps,
             exploration_final_eps=exploration_final_eps,
+            max_grad_norm=max_grad_norm,
             hidden_dtype=hidden_dtype,
             policy_kwargs=policy_kwargs,
             stats_window_size=stats_window_size,
@@ -121,25 +126,8 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
             seed=seed,
             device=device,
         )
-        self.target_update_interval = target_update_interval
-        self.target_entropy_ratio = target_entropy_ratio
-        self.alpha_init = alpha_init
-        self.alpha_optimizer = alpha_optimizer
-        self.alpha_learning_rate = alpha_learning_rate
-        self.stochastic = stochastic
-        self.max_grad_norm = max_grad_norm
         if _init_setup_model:
             self._setup_model()
-
-    def _setup_model(self) -> None:
-        super()._setup_model()
-        temperature = self.policy.temperature
-        with th.no_grad():
-            temperature.param.fill_(np.log(self.alpha_init) if temperature.log_space else self.alpha_init)
-        self.target_entropy = target_entropy(self.target_entropy_ratio, int(self.action_space.n))
-        self.temperature = TemperatureController(
-            temperature, self.target_entropy, self.alpha_optimizer, self.alpha_learning_rate
-        )
 
     def _next_value(self, next_q: th.Tensor, alpha: th.Tensor) -> th.Tensor:
         """State value ``(batch, n_agents)`` of the next observations from target Q-values
@@ -168,8 +156,9 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
             self.policy.optimizer.step()
 
             entropy = categorical_entropy(q_values.detach() / alpha).mean()
-            if self.stochastic:
-                alpha_gradients.append(self.temperature.update(entropy))
+            alpha_gradient = self._update_temperature(entropy)
+            if alpha_gradient is not None:
+                alpha_gradients.append(alpha_gradient)
             losses.append(loss.item())
             entropies.append(entropy.item())
             self._n_updates += 1
@@ -178,11 +167,7 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
 
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/q_loss", float(np.mean(losses)))
-        self.logger.record("train/entropy", float(np.mean(entropies)))
-        self.logger.record("train/target_entropy", self.target_entropy)
-        self.logger.record("train/alpha", float(self.policy.temperature.alpha.detach()))
-        if alpha_gradients:
-            self.logger.record("train/alpha_grad", float(np.mean(alpha_gradients)))
+        self._record_temperature(entropies, alpha_gradients)
 
     def learn(
         self,
@@ -196,6 +181,3 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
         return super().learn(
             total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar
         )
-
-    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
-        return ["policy", "policy.optimizer", "temperature.optimizer"], []

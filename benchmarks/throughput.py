@@ -1,0 +1,170 @@
+"""Throughput and memory of Soft-HGRN on Surviving: env, collection, updates, replay storage.
+
+Run: python benchmarks/throughput.py [--agents 100] [--sizes default paper] [--buffer-rows 50000]
+
+Prints, for Surviving with ``--agents`` agents:
+- env steps/s with random actions (array API with the graph, the graph VecEnv, the PettingZoo dict API);
+- collection steps/s with the policy (1 and 4 env copies, no training);
+- per network size: gradient updates/s of ``SoftHGRN.train`` and the bare network time of the same
+  batch (target forward + forward + backward + optimiser step); their ratio is the learner overhead;
+- bytes per replay row and the resident memory of a filled ``--buffer-rows`` buffer, and peak RSS.
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import time
+
+import numpy as np
+import torch as th
+import torch.nn.functional as F
+
+from sb3_hgrn import SoftHGRN, make_graph_vec_env
+from sb3_hgrn.common.buffers import GraphReplayBuffer
+from sb3_hgrn.common.hgrn import PAPER_SIZE
+from sb3_hgrn.envs import surviving_v0
+
+SIZES = {"default": {}, "paper": PAPER_SIZE}
+
+
+def best_rate(run, count: int, repeats: int = 3) -> float:
+    """Highest ``count / seconds`` over ``repeats`` calls of ``run()``."""
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        run()
+        best = min(best, time.perf_counter() - start)
+    return count / best
+
+
+def resident_bytes() -> int:
+    with open("/proc/self/statm") as statm:
+        return int(statm.read().split()[1]) * resource.getpagesize()
+
+
+def env_rates(n_agents: int, steps: int) -> None:
+    env = surviving_v0.parallel_env(n_agents=n_agents, max_cycles=10**9)
+    env.reset_arrays(seed=0)
+    actions = np.random.default_rng(0).integers(0, 5, size=(steps, n_agents))
+
+    def array_api():
+        for step_actions in actions:
+            env.step_arrays(step_actions)
+            env.neighbors()
+
+    vec_env = make_graph_vec_env("surviving_v0", seed=0, env_kwargs={"n_agents": n_agents})
+    vec_env.reset()
+
+    def graph_vec_env():
+        for step_actions in actions:
+            vec_env.step(step_actions)
+
+    env.reset(seed=0)
+    dict_actions = [dict(zip(env.agents, row.tolist(), strict=True)) for row in actions]
+
+    def dict_api():
+        for step_actions in dict_actions:
+            env.step(step_actions)
+
+    for name, run in (
+        ("array API + graph", array_api),
+        ("graph VecEnv", graph_vec_env),
+        ("dict API", dict_api),
+    ):
+        rate = best_rate(run, steps)
+        print(f"env  {name:18s} {rate:9.0f} env steps/s  {rate * n_agents:11.0f} agent-steps/s")
+
+
+def collection_rates(n_agents: int, steps: int) -> None:
+    for n_copies in (1, 4):
+        env = make_graph_vec_env("surviving_v0", n_envs=n_copies, seed=0, env_kwargs={"n_agents": n_agents})
+        model = SoftHGRN("GraphPolicy", env, learning_starts=10**9, seed=0)  # no training: collection only
+        total = steps * env.num_envs
+        model.learn(env.num_envs * 10)  # warm-up
+        rate = best_rate(lambda model=model, total=total: model.learn(total), steps, repeats=2)
+        print(
+            f"collect {n_copies} x {n_agents} agents: {rate:7.0f} vec-steps/s "
+            f"{rate * env.num_envs:9.0f} agent-steps/s (policy forward, env step, replay add)"
+        )
+
+
+def update_rates(n_agents: int, size: str, batch_size: int, updates: int) -> None:
+    env = make_graph_vec_env("surviving_v0", n_envs=1, seed=0, env_kwargs={"n_agents": n_agents})
+    model = SoftHGRN("GraphPolicy", env, learning_starts=10**9, batch_size=batch_size,
+                     policy_kwargs=dict(SIZES[size]), seed=0)  # fmt: skip
+    model.learn(n_agents * 300)  # fill the buffer with 300 steps of collection
+    model.train(gradient_steps=1, batch_size=batch_size)  # warm-up
+    update_rate = best_rate(
+        lambda: model.train(gradient_steps=updates, batch_size=batch_size), updates, repeats=2
+    )
+
+    q_net, q_net_target, optimizer = model.policy.q_net, model.policy.q_net_target, model.policy.optimizer
+    batch = model.replay_buffer.sample(batch_size)
+
+    def bare_step():
+        for _ in range(updates):
+            with th.no_grad():
+                next_q, _ = q_net_target(batch.next_observations, batch.next_neighbors, batch.next_hidden)
+            q_values, _ = q_net(batch.observations, batch.neighbors, batch.hidden)
+            loss = F.mse_loss(
+                q_values.gather(-1, batch.actions.unsqueeze(-1)).squeeze(-1), next_q.max(-1).values
+            )
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+
+    bare_rate = best_rate(bare_step, updates, repeats=2)
+    n_params = sum(p.numel() for p in q_net.parameters())
+    print(
+        f"update [{size}, {n_params / 1e6:.2f} M params] batch {batch_size} graphs x {n_agents} agents: "
+        f"{1 / update_rate:6.3f} s/update ({update_rate:5.2f} updates/s), "
+        f"bare network {1 / bare_rate:6.3f} s, "
+        f"learner overhead {bare_rate / update_rate:4.2f}x"
+    )
+
+
+def buffer_memory(n_agents: int, size: str, rows: int) -> None:
+    env = make_graph_vec_env("surviving_v0", seed=0, env_kwargs={"n_agents": n_agents})
+    state_dim = (SIZES[size] or {"hidden_dim": 64}).get("hidden_dim", 64)
+    before = resident_bytes()
+    buffer = GraphReplayBuffer(rows * env.num_envs, env.observation_space, env.action_space, device="cpu",
+                               n_envs=env.num_envs, n_agents=n_agents, state_dim=state_dim)  # fmt: skip
+    for name in ("observations", "next_observations", "neighbors", "next_neighbors", "actions", "rewards",
+                 "terminated", "hidden", "episode_starts"):  # fmt: skip
+        getattr(buffer, name).fill(1)  # touch every page
+    resident = resident_bytes() - before
+    print(
+        f"buffer [{size}, hidden {state_dim} float16] {buffer.nbytes / rows:8.0f} B/row "
+        f"({buffer.nbytes / rows / n_agents:5.0f} B/agent-transition); {rows} rows: "
+        f"{buffer.nbytes / 2**30:5.2f} GiB stored, {resident / 2**30:5.2f} GiB resident"
+    )
+    del buffer
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--agents", type=int, default=100)
+    parser.add_argument("--sizes", nargs="+", default=["default", "paper"], choices=sorted(SIZES))
+    parser.add_argument("--batch-sizes", nargs="+", type=int, default=[32, 128])
+    parser.add_argument("--env-steps", type=int, default=2000)
+    parser.add_argument("--collect-steps", type=int, default=200)
+    parser.add_argument("--updates", type=int, default=5)
+    parser.add_argument("--buffer-rows", type=int, default=50_000)
+    parser.add_argument("--threads", type=int, default=th.get_num_threads())
+    args = parser.parse_args()
+    th.set_num_threads(args.threads)
+    print(f"Surviving, {args.agents} agents, torch {th.__version__}, {args.threads} threads")
+    env_rates(args.agents, args.env_steps)
+    collection_rates(args.agents, args.collect_steps)
+    for size in args.sizes:
+        for batch_size in args.batch_sizes:
+            update_rates(args.agents, size, batch_size, args.updates)
+        buffer_memory(args.agents, size, args.buffer_rows)
+    print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,91 @@
+"""SAC-HGRN policy: an HGRN actor (logits) and HGRN critics (Q for every action), each with its own state."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.type_aliases import Schedule
+from torch import nn
+
+from sb3_hgrn.common.hgrn import HGRN
+from sb3_hgrn.common.policies import GraphObs, GraphPolicy
+
+
+class SACHGRNPolicy(GraphPolicy):
+    """Discrete soft actor-critic on graphs: actor and ``n_critics`` critics with separate parameters.
+
+    The carried state is ``[actor state, critic 1 state, ...]`` (see
+    :meth:`~sb3_hgrn.common.policies.GraphPolicy.split_state`): the critics' memories advance while
+    acting, so each transition stores the states both networks had.
+
+    :param n_critics: number of critics (2 = clipped double Q).
+    :param actor_kwargs: network options of the actor only (e.g. ``dict(communication="none")``).
+    :param critic_kwargs: network options of the critics only.
+    Other parameters: see :class:`~sb3_hgrn.common.policies.GraphPolicy`.
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        action_space: spaces.Discrete,
+        lr_schedule: Schedule,
+        n_critics: int = 1,
+        actor_kwargs: dict[str, Any] | None = None,
+        critic_kwargs: dict[str, Any] | None = None,
+        **kwargs: Any,
+    ):
+        super().__init__(observation_space, action_space, lr_schedule, **kwargs)
+        if n_critics < 1:
+            raise ValueError(f"n_critics must be >= 1, got {n_critics}.")
+        self.n_critics = n_critics
+        self.actor_kwargs = dict(actor_kwargs or {})
+        self.critic_kwargs = dict(critic_kwargs or {})
+        self.actor = self.make_network(**self.actor_kwargs)
+        self.critics = nn.ModuleList(self.make_network(**self.critic_kwargs) for _ in range(n_critics))
+        self.critic_targets = nn.ModuleList(self.make_network(**self.critic_kwargs) for _ in range(n_critics))
+        self.critic_targets.load_state_dict(self.critics.state_dict())
+        self.critic_targets.requires_grad_(False)
+        self.critic_targets.train(False)
+        self.actor_optimizer = self.optimizer_class(
+            self.actor.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs
+        )
+        self.critic_optimizer = self.optimizer_class(
+            self.critics.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs
+        )
+
+    @property
+    def recurrent_networks(self) -> list[HGRN]:
+        return [self.actor, *self.critics]
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(
+            n_critics=self.n_critics, actor_kwargs=self.actor_kwargs, critic_kwargs=self.critic_kwargs
+        )
+        return data
+
+    def act(
+        self, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False
+    ) -> tuple[th.Tensor, th.Tensor]:
+        observations, neighbors = self.to_graphs(obs)
+        n_graphs, n_agents = observations.shape[:2]
+        states = self.split_state(hidden.reshape(n_graphs, n_agents, -1))
+        logits, actor_state = self.actor(observations, neighbors, states[0])
+        new_states = [actor_state]
+        for critic, state in zip(self.critics, states[1:], strict=True):
+            new_states.append(critic(observations, neighbors, state)[1] if critic.state_dim else state)
+        if deterministic or not self.stochastic:
+            actions = logits.argmax(dim=-1)
+        else:
+            actions = th.distributions.Categorical(logits=logits).sample()
+        return actions.reshape(-1), th.cat(new_states, dim=-1).reshape(n_graphs * n_agents, -1)
+
+    def forward(self, obs: GraphObs, deterministic: bool = False) -> th.Tensor:
+        return self._predict(obs, deterministic)
+
+    def set_training_mode(self, mode: bool) -> None:
+        self.actor.train(mode)
+        self.critics.train(mode)
+        self.training = mode

@@ -1,0 +1,201 @@
+"""SAC-HGRN: discrete soft actor-critic on graphs with a temperature that tracks a target entropy."""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import numpy as np
+import torch as th
+import torch.nn.functional as F
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.utils import polyak_update
+
+from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
+from sb3_hgrn.sac_hgrn.policies import SACHGRNPolicy
+
+ACTOR_LOSSES = ("standard", "policy_gradient")
+
+
+class SACHGRN(GraphOffPolicyAlgorithm):
+    """SAC-HGRN (discrete soft actor-critic with HGRN actor and critics, Ye et al., AAAI 2022).
+
+    Critic target: ``r + gamma * (1 - terminated) * sum_a pi(a|o') (Q_target(o', a) - alpha log pi(a|o'))``
+    (the minimum over critics when there are several). Actor loss ``"standard"``:
+    ``sum_a pi(a|o) (alpha log pi(a|o) - Q(o, a))``; ``"policy_gradient"`` (the paper's form):
+    ``-log pi(a|o) (Q(o, a) - alpha log pi(a|o))`` for ``a`` sampled from the policy. Each gradient step
+    updates the critics, then the actor, then alpha (toward ``target_entropy_ratio * log|A|`` on the
+    actor's entropy). With ``stochastic=False`` (``-S``) the actor acts greedily with epsilon-greedy
+    exploration, the target follows the greedy action and the actor maximises ``sum_a pi(a|o) Q(o, a)``.
+
+    Units and the shared options: see :class:`~sb3_hgrn.soft_hgrn.SoftHGRN`.
+
+    :param actor_loss: ``"standard"`` or ``"policy_gradient"``.
+    :param policy_kwargs: network options for both networks, plus ``n_critics``, ``actor_kwargs``
+        and ``critic_kwargs`` (options of one network only).
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"GraphPolicy": SACHGRNPolicy}
+    policy: SACHGRNPolicy
+
+    def __init__(
+        self,
+        policy: str | type[SACHGRNPolicy],
+        env: GymEnv | str | None,
+        learning_rate: float | Schedule = 1e-3,
+        buffer_size: int = 1_000_000,
+        learning_starts: int = 10_000,
+        batch_size: int = 32,
+        tau: float = 0.01,
+        gamma: float = 0.95,
+        train_freq: int | tuple[int, str] = 4,
+        gradient_steps: int = 1,
+        target_update_interval: int = 5,
+        target_entropy_ratio: float = 0.2,
+        alpha_init: float = 0.1,
+        learn_alpha: bool = True,
+        alpha_optimizer: str = "adam",
+        alpha_learning_rate: float = 1e-3,
+        stochastic: bool = True,
+        actor_loss: str = "standard",
+        exploration_fraction: float = 0.1,
+        exploration_initial_eps: float | None = None,
+        exploration_final_eps: float | None = None,
+        max_grad_norm: float = 10.0,
+        hidden_dtype: str = "float16",
+        policy_kwargs: dict[str, Any] | None = None,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ):
+        if actor_loss not in ACTOR_LOSSES:
+            raise ValueError(f"actor_loss must be one of {ACTOR_LOSSES}, got {actor_loss!r}.")
+        super().__init__(
+            policy,
+            env,
+            learning_rate,
+            buffer_size=buffer_size,
+            learning_starts=learning_starts,
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            train_freq=train_freq,
+            gradient_steps=gradient_steps,
+            target_update_interval=target_update_interval,
+            target_entropy_ratio=target_entropy_ratio,
+            alpha_init=alpha_init,
+            learn_alpha=learn_alpha,
+            alpha_optimizer=alpha_optimizer,
+            alpha_learning_rate=alpha_learning_rate,
+            stochastic=stochastic,
+            exploration_fraction=exploration_fraction,
+            exploration_initial_eps=exploration_initial_eps,
+            exploration_final_eps=exploration_final_eps,
+            max_grad_norm=max_grad_norm,
+            hidden_dtype=hidden_dtype,
+            policy_kwargs=policy_kwargs,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            verbose=verbose,
+            seed=seed,
+            device=device,
+        )
+        self.actor_loss = actor_loss
+        if _init_setup_model:
+            self._setup_model()
+
+    def _optimizer_names(self) -> list[str]:
+        return ["policy.actor_optimizer", "policy.critic_optimizer"]
+
+    def _next_value(self, next_q: th.Tensor, next_logits: th.Tensor, alpha: th.Tensor) -> th.Tensor:
+        """Value ``(batch, n_agents)`` of the next observations from target Q-values and actor logits
+        ``(batch, n_agents, n_actions)``: the exact soft expectation over actions, or the Q-value of
+        the greedy action for ``stochastic=False``."""
+        if not self.stochastic:
+            return next_q.gather(-1, next_logits.argmax(dim=-1, keepdim=True)).squeeze(-1)
+        log_probs = th.log_softmax(next_logits, dim=-1)
+        return (log_probs.exp() * (next_q - alpha * log_probs)).sum(dim=-1)
+
+    def _policy_loss(self, logits: th.Tensor, q_values: th.Tensor, alpha: th.Tensor) -> th.Tensor:
+        """Actor loss from its logits and the (detached) critic Q-values ``(batch, n_agents, n_actions)``."""
+        alpha = alpha if self.stochastic else th.zeros_like(alpha)
+        log_probs = th.log_softmax(logits, dim=-1)
+        if self.actor_loss == "standard":
+            return (log_probs.exp() * (alpha * log_probs - q_values)).sum(dim=-1).mean()
+        actions = th.distributions.Categorical(logits=logits.detach()).sample().unsqueeze(-1)
+        log_prob = log_probs.gather(-1, actions).squeeze(-1)
+        advantage = q_values.gather(-1, actions).squeeze(-1) - alpha * log_prob.detach()
+        return -(log_prob * advantage).mean()
+
+    def train(self, gradient_steps: int, batch_size: int = 32) -> None:
+        policy = self.policy
+        policy.set_training_mode(True)
+        self._update_learning_rate([policy.actor_optimizer, policy.critic_optimizer])
+        critic_losses, actor_losses, entropies, alpha_gradients = [], [], [], []
+        for _ in range(gradient_steps):
+            batch = self.replay_buffer.sample(batch_size)
+            actor_state, *critic_states = policy.split_state(batch.hidden)
+            next_actor_state, *next_critic_states = policy.split_state(batch.next_hidden)
+            alpha = policy.temperature.alpha.detach()
+            with th.no_grad():
+                next_logits, _ = policy.actor(batch.next_observations, batch.next_neighbors, next_actor_state)
+                next_q = th.stack(
+                    [
+                        target(batch.next_observations, batch.next_neighbors, state)[0]
+                        for target, state in zip(policy.critic_targets, next_critic_states, strict=True)
+                    ]
+                ).amin(dim=0)
+                next_value = self._next_value(next_q, next_logits, alpha)
+                target_q = batch.rewards + self.gamma * (1.0 - batch.terminated) * next_value
+
+            q_values = [
+                critic(batch.observations, batch.neighbors, state)[0]
+                for critic, state in zip(policy.critics, critic_states, strict=True)
+            ]
+            actions = batch.actions.unsqueeze(-1)
+            critic_loss = sum(F.mse_loss(q.gather(-1, actions).squeeze(-1), target_q) for q in q_values)
+            policy.critic_optimizer.zero_grad()
+            critic_loss.backward()
+            th.nn.utils.clip_grad_norm_(policy.critics.parameters(), self.max_grad_norm)
+            policy.critic_optimizer.step()
+
+            logits, _ = policy.actor(batch.observations, batch.neighbors, actor_state)
+            min_q = th.stack([q.detach() for q in q_values]).amin(dim=0)
+            actor_loss = self._policy_loss(logits, min_q, alpha)
+            policy.actor_optimizer.zero_grad()
+            actor_loss.backward()
+            th.nn.utils.clip_grad_norm_(policy.actor.parameters(), self.max_grad_norm)
+            policy.actor_optimizer.step()
+
+            log_probs = th.log_softmax(logits.detach(), dim=-1)
+            entropy = -(log_probs.exp() * log_probs).sum(dim=-1).mean()
+            alpha_gradient = self._update_temperature(entropy)
+            if alpha_gradient is not None:
+                alpha_gradients.append(alpha_gradient)
+            critic_losses.append(critic_loss.item())
+            actor_losses.append(actor_loss.item())
+            entropies.append(entropy.item())
+            self._n_updates += 1
+            if self._n_updates % self.target_update_interval == 0:
+                polyak_update(policy.critics.parameters(), policy.critic_targets.parameters(), self.tau)
+
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/critic_loss", float(np.mean(critic_losses)))
+        self.logger.record("train/actor_loss", float(np.mean(actor_losses)))
+        self._record_temperature(entropies, alpha_gradients)
+
+    def learn(
+        self,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str = "SACHGRN",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SACHGRN:
+        return super().learn(
+            total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar
+        )

@@ -1,0 +1,98 @@
+import math
+
+import numpy as np
+import pytest
+import torch as th
+
+from sb3_hgrn import SACHGRN, evaluate_graph_policy
+from tests.toy_envs import bit_vec_env
+
+
+def quick_model(env, **kwargs):
+    options = dict(
+        learning_starts=64, batch_size=8, train_freq=1, policy_kwargs=dict(hidden_dim=16, n_heads=2)
+    )
+    options.update(kwargs)
+    return SACHGRN("GraphPolicy", env, seed=0, **options)
+
+
+@pytest.mark.parametrize("actor_loss", ["standard", "policy_gradient"])
+def test_learns_the_neighbour_bit_task(actor_loss):
+    model = quick_model(
+        bit_vec_env(), learning_starts=256, batch_size=16, target_entropy_ratio=0.05, actor_loss=actor_loss,
+        policy_kwargs=dict(hidden_dim=32),
+    )  # fmt: skip
+    model.learn(12_000)
+    team_return, _ = evaluate_graph_policy(model, bit_vec_env(seed=100), n_eval_episodes=16)
+    assert team_return >= 29.0  # 32 is perfect; without communication 16 is the best expectation
+
+
+def test_state_holds_actor_and_critic_memories():
+    env = bit_vec_env(n_envs=2)
+    model = quick_model(env, policy_kwargs=dict(hidden_dim=16, n_critics=2))
+    obs = env.reset()
+    _, state = model.predict(obs)
+    assert state[0].shape == (1, 8, 3 * 16)
+    actor_state, critic_state, _ = np.split(state[0][0], 3, axis=-1)
+    assert np.abs(actor_state).sum() > 0 and np.abs(critic_state).sum() > 0
+    assert not np.allclose(actor_state, critic_state)  # separate networks, separate memories
+    model.learn(8 * 12)
+    assert model.replay_buffer.hidden.shape[-1] == 48
+
+
+def test_exact_soft_value_and_greedy_value():
+    model = quick_model(bit_vec_env(n_envs=1))
+    next_q = th.tensor([[[1.0, 3.0]]])
+    logits = th.log(th.tensor([[[0.25, 0.75]]]))
+    alpha = th.tensor(0.5)
+    expected = 0.25 * (1.0 - 0.5 * math.log(0.25)) + 0.75 * (3.0 - 0.5 * math.log(0.75))
+    assert model._next_value(next_q, logits, alpha).item() == pytest.approx(expected, rel=1e-6)
+    model.stochastic = False
+    assert model._next_value(next_q, logits, alpha).item() == pytest.approx(3.0)
+
+
+def test_standard_actor_loss_matches_hand_computation():
+    model = quick_model(bit_vec_env(n_envs=1))
+    logits = th.log(th.tensor([[[0.5, 0.5]]]))
+    q = th.tensor([[[1.0, 2.0]]])
+    expected = 0.5 * (0.2 * math.log(0.5) - 1.0) + 0.5 * (0.2 * math.log(0.5) - 2.0)
+    assert model._policy_loss(logits, q, th.tensor(0.2)).item() == pytest.approx(expected, rel=1e-6)
+
+
+def test_save_load_round_trip(tmp_path):
+    env = bit_vec_env(n_envs=2)
+    model = quick_model(
+        env, policy_kwargs=dict(hidden_dim=16, n_critics=2, actor_kwargs=dict(recurrent=False))
+    )
+    model.learn(400)
+    model.save(tmp_path / "sac.zip")
+    obs = env.reset()
+    expected, expected_state = model.predict(obs, deterministic=True)
+    actions, state = SACHGRN.load(tmp_path / "sac.zip", env=env).predict(obs, deterministic=True)
+    np.testing.assert_array_equal(actions, expected)
+    np.testing.assert_allclose(state[0], expected_state[0], atol=1e-6)
+    assert state[0].shape == (1, 8, 32)  # actor without memory + two critics of 16
+    loaded = SACHGRN.load(tmp_path / "sac.zip", env=bit_vec_env(n_envs=3))  # another copy count
+    loaded.learn(12 * 10, reset_num_timesteps=False)
+    assert loaded.num_timesteps == model.num_timesteps + 120
+
+
+def test_logs_actor_and_critic_losses():
+    model = quick_model(bit_vec_env(n_envs=2))
+    model.learn(8 * 20)
+    logged = model.logger.name_to_value
+    for key in (
+        "train/actor_loss",
+        "train/critic_loss",
+        "train/alpha",
+        "train/entropy",
+        "train/target_entropy",
+    ):
+        assert key in logged
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="actor_loss"):
+        quick_model(bit_vec_env(n_envs=1), actor_loss="ppo")
+    with pytest.raises(ValueError, match="n_critics"):
+        quick_model(bit_vec_env(n_envs=1), policy_kwargs=dict(n_critics=0))
