@@ -6,7 +6,6 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from sb3_hgrn.common import hgrn
 from sb3_hgrn.common.hgrn import HGRN, PAPER_SIZE, GraphAttention, MeanCommunication, SelfOnly
 
 IN_DIM, OUT_DIM, HEADS, HEAD_DIM = 6, 7, 2, 3
@@ -69,12 +68,28 @@ def test_attention_matches_dense_reference(layer, x, neighbors):
     torch.testing.assert_close(layer(x, neighbors), expected)
 
 
-def test_attention_matches_dense_reference_across_chunks(layer, x, monkeypatch):
-    monkeypatch.setattr(hgrn, "_CHUNK_ELEMENTS", 1)  # one graph per chunk
-    expected, _ = dense_attention(layer, x, dense_adjacency(NEIGHBORS))
-    torch.testing.assert_close(layer(x, NEIGHBORS), expected)
+@pytest.mark.parametrize("neighbors", [NEIGHBORS, NEIGHBORS_WITH_SELF])
+def test_attention_gradcheck(layer, x, neighbors):
     x.requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda inp: layer(inp, NEIGHBORS), (x,))
+    assert torch.autograd.gradcheck(lambda inp: layer(inp, neighbors), (x,))
+
+
+def test_attention_without_grad_matches_with_grad(layer, x):
+    with torch.no_grad():
+        out, weights = layer(x, NEIGHBORS, return_attention=True)
+    expected, expected_weights = layer(x.requires_grad_(True), NEIGHBORS, return_attention=True)
+    torch.testing.assert_close(out, expected.detach())
+    torch.testing.assert_close(weights, expected_weights)
+
+
+def test_attention_float32_paper_width_matches_dense_reference():
+    torch.manual_seed(0)
+    layer = GraphAttention(32, 32, 4, 256)
+    x = torch.randn(3, 20, 32)
+    neighbors = torch.stack([torch.randperm(20)[:6] for _ in range(60)]).reshape(3, 20, 6)
+    neighbors[torch.rand(3, 20, 6) < 0.3] = -1  # lists without repeated entries, some empty slots
+    expected, _ = dense_attention(layer.double(), x.double(), dense_adjacency(neighbors))
+    torch.testing.assert_close(layer.float()(x, neighbors), expected.float(), rtol=1e-4, atol=1e-5)
 
 
 def test_attention_gradients_match_dense_reference(layer, x):

@@ -13,6 +13,8 @@ ever formed.
 from __future__ import annotations
 
 import math
+import warnings
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -20,9 +22,6 @@ from torch import Tensor, nn
 
 PAPER_SIZE: dict = {"hidden_dim": 256, "n_heads": 4, "head_dim": 256}
 """Network size of the original HGRN (4 heads of width 256 on a hidden size of 256)."""
-
-_CHUNK_ELEMENTS = 1 << 18
-"""Rows x features processed per attention chunk: keeps each chunk's working set in the CPU cache."""
 
 COMMUNICATIONS = ("hgat", "mean", "none")
 
@@ -62,63 +61,113 @@ def neighbor_columns(neighbors: Tensor, n_agents: int) -> tuple[Tensor, Tensor]:
     return columns, mask
 
 
-class _NeighborAttention(torch.autograd.Function):
-    """Masked multi-head attention over gathered neighbours, computed in cache-sized chunks.
+class _Pattern(NamedTuple):
+    """Sparsity pattern of the attention of one neighbour structure as CSR index tensors.
 
-    Rows are processed in chunks of whole graphs (indices never leave their graph) and one
-    neighbour column at a time, so no ``(rows, max_neighbors + 1, heads, head_dim)`` tensor is
-    stored; the backward pass gathers keys and values again instead of keeping them.
+    Rows and columns are ``(agent, head)`` pairs ``r * heads + h`` of a ``(rows * heads, rows * heads)``
+    matrix with exactly ``K + 1`` entries per row (the listed columns of ``neighbor_columns``), so
+    ``O(rows * heads * (K + 1))`` entries are stored. ``transpose`` maps the values of the transposed
+    matrix (same pattern, rows sorted) to their position in the values of the matrix itself.
+    """
+
+    crow: Tensor
+    col: Tensor
+    crow_t: Tensor
+    col_t: Tensor
+    transpose: Tensor
+    size: int
+
+
+def _attention_pattern(columns: Tensor, heads: int) -> _Pattern:
+    """Build the CSR pattern of attention over ``columns`` ``(K + 1, rows)`` for ``heads`` heads; the
+    values of a matrix on it are laid out as ``(rows, heads, K + 1)``."""
+    n_columns, rows = columns.shape
+    device = columns.device
+    head = torch.arange(heads, device=device)
+    target = columns.t().reshape(-1)  # entry e = r * (K + 1) + c points at agent target[e]
+    col = (target.view(rows, 1, n_columns) * heads + head.view(1, heads, 1)).reshape(-1)
+    crow = torch.arange(0, rows * heads * n_columns + 1, n_columns, device=device)
+    order = torch.argsort(target, stable=True)
+    count = torch.bincount(target, minlength=rows)
+    first = torch.cumsum(count, 0) - count
+    sorted_target = target[order]
+    # Transposed row (j, h) holds the count[j] entries pointing at j, in the order of ``order``.
+    dest = ((heads - 1) * first[sorted_target] + torch.arange(order.numel(), device=device)).unsqueeze(
+        1
+    ) + head * count[sorted_target].unsqueeze(1)
+    source_row = (order // n_columns * heads).unsqueeze(1) + head
+    transpose = torch.empty(dest.numel(), dtype=torch.long, device=device)
+    transpose[dest.reshape(-1)] = (source_row * n_columns + (order % n_columns).unsqueeze(1)).reshape(-1)
+    col_t = torch.empty_like(transpose)
+    col_t[dest.reshape(-1)] = source_row.reshape(-1)
+    crow_t = torch.zeros(rows * heads + 1, dtype=torch.long, device=device)
+    torch.cumsum(count.repeat_interleave(heads), 0, out=crow_t[1:])
+    return _Pattern(crow, col, crow_t, col_t, transpose, rows * heads)
+
+
+def _sparse(crow: Tensor, col: Tensor, values: Tensor, size: int) -> Tensor:
+    """``(size, size)`` CSR matrix with the given index tensors and flat ``values``."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "Sparse CSR tensor support is in beta state")
+        return torch.sparse_csr_tensor(crow, col, values, (size, size), check_invariants=False)
+
+
+def _matmul(pattern: _Pattern, values: Tensor, dense: Tensor, transposed: bool = False) -> Tensor:
+    """``M @ dense`` (or ``M^T @ dense``) for the matrix ``M`` with ``values`` ``(rows, heads, K + 1)``
+    on ``pattern``; ``dense`` ``(rows * heads, head_dim)``."""
+    values = values.reshape(-1)
+    if transposed:
+        return _sparse(pattern.crow_t, pattern.col_t, values[pattern.transpose], pattern.size) @ dense
+    return _sparse(pattern.crow, pattern.col, values, pattern.size) @ dense
+
+
+def _sampled_dot(pattern: _Pattern, left: Tensor, right: Tensor) -> Tensor:
+    """Dot products ``left[row] . right[col]`` ``(rows * heads * (K + 1),)`` at the entries of
+    ``pattern``; ``left``, ``right`` ``(rows * heads, head_dim)``."""
+    zeros = torch.zeros(pattern.col.numel(), dtype=left.dtype, device=left.device)
+    return torch.sparse.sampled_addmm(
+        _sparse(pattern.crow, pattern.col, zeros, pattern.size), left, right.t(), beta=0.0
+    ).values()
+
+
+class _NeighborAttention(torch.autograd.Function):
+    """Masked multi-head attention over gathered neighbours as sparse (CSR) matrix products.
+
+    Logits are sampled dot products at the listed entries only and the weighted sum of values is a
+    sparse-dense product, so nothing of size ``(rows, K + 1, heads, head_dim)`` is formed; the
+    backward pass uses the transposed pattern for the gradients of keys and values.
     """
 
     @staticmethod
     def forward(
-        ctx, query: Tensor, key: Tensor, value: Tensor, columns: Tensor, mask: Tensor, chunk_rows: int
+        ctx, query: Tensor, key: Tensor, value: Tensor, pattern: _Pattern, mask: Tensor
     ) -> tuple[Tensor, Tensor]:
-        """``query``/``key``/``value`` ``(rows, heads, head_dim)``, ``columns`` ``(K + 1, rows)``,
-        ``mask`` ``(rows, K + 1)``. Returns output ``(rows, heads, head_dim)`` and attention weights
-        ``(rows, K + 1, heads)``."""
-        scaled_query = query * (query.shape[-1] ** -0.5)
-        logits = torch.empty(mask.shape + query.shape[1:2], dtype=query.dtype, device=query.device)
-        for start, stop, index in _chunks(columns, chunk_rows):
-            q, k = scaled_query[start:stop], key[start:stop]
-            for col, idx in enumerate(index):
-                logits[start:stop, col] = (q * k.index_select(0, idx)).sum(-1)
-        weights = logits.masked_fill_(~mask.unsqueeze(-1), -math.inf).softmax(dim=1)
-        out = torch.zeros_like(query)
-        for start, stop, index in _chunks(columns, chunk_rows):
-            o, v, a = out[start:stop], value[start:stop], weights[start:stop]
-            for col, idx in enumerate(index):
-                o.addcmul_(a[:, col].unsqueeze(-1), v.index_select(0, idx))
-        ctx.save_for_backward(scaled_query, key, value, columns, weights)
-        ctx.chunk_rows = chunk_rows
+        """``query``/``key``/``value`` ``(rows, heads, head_dim)``, ``mask`` ``(rows, K + 1)``.
+        Returns output ``(rows, heads, head_dim)`` and attention weights ``(rows, heads, K + 1)``."""
+        rows, heads, head_dim = query.shape
+        scaled_query = (query * head_dim**-0.5).reshape(-1, head_dim)
+        key, value = key.reshape(-1, head_dim), value.reshape(-1, head_dim)
+        logits = _sampled_dot(pattern, scaled_query, key).view(rows, heads, -1)
+        weights = logits.masked_fill_(~mask.unsqueeze(1), -math.inf).softmax(dim=-1)
+        out = _matmul(pattern, weights, value).view(rows, heads, head_dim)
+        ctx.save_for_backward(scaled_query, key, value, weights)
+        ctx.pattern = pattern
         ctx.mark_non_differentiable(weights)
         return out, weights
 
     @staticmethod
     def backward(ctx, grad_out: Tensor, _grad_weights: Tensor | None) -> tuple[Tensor | None, ...]:
-        scaled_query, key, value, columns, weights = ctx.saved_tensors
-        grad_query, grad_key, grad_value = (torch.zeros_like(t) for t in (scaled_query, key, value))
-        for start, stop, index in _chunks(columns, ctx.chunk_rows):
-            g, a = grad_out[start:stop], weights[start:stop]
-            q, k, v = scaled_query[start:stop], key[start:stop], value[start:stop]
-            gq, gk, gv = grad_query[start:stop], grad_key[start:stop], grad_value[start:stop]
-            grad_a = torch.stack([(g * v.index_select(0, idx)).sum(-1) for idx in index], dim=1)
-            grad_logits = a * (grad_a - (a * grad_a).sum(dim=1, keepdim=True))
-            for col, idx in enumerate(index):
-                gv.index_add_(0, idx, a[:, col].unsqueeze(-1) * g)
-                grad_l = grad_logits[:, col].unsqueeze(-1)
-                gq.addcmul_(grad_l, k.index_select(0, idx))
-                gk.index_add_(0, idx, grad_l * q)
-        grad_query.mul_(scaled_query.shape[-1] ** -0.5)
-        return grad_query, grad_key, grad_value, None, None, None
-
-
-def _chunks(columns: Tensor, chunk_rows: int):
-    """Yield ``(start, stop, index)`` per row chunk; ``index`` ``(K + 1, stop - start)`` is relative
-    to ``start``. ``chunk_rows`` must be a multiple of the graph size so indices stay in the chunk."""
-    for start in range(0, columns.shape[1], chunk_rows):
-        stop = min(start + chunk_rows, columns.shape[1])
-        yield start, stop, columns[:, start:stop] - start
+        scaled_query, key, value, weights = ctx.saved_tensors
+        pattern = ctx.pattern
+        rows, heads, head_dim = grad_out.shape
+        grad_out = grad_out.reshape(-1, head_dim)
+        grad_weights = _sampled_dot(pattern, grad_out, value).view(weights.shape)
+        grad_logits = weights * (grad_weights - (weights * grad_weights).sum(dim=-1, keepdim=True))
+        grad_value = _matmul(pattern, weights, grad_out, transposed=True)
+        grad_query = _matmul(pattern, grad_logits, key).mul_(head_dim**-0.5)
+        grad_key = _matmul(pattern, grad_logits, scaled_query, transposed=True)
+        shape = (rows, heads, head_dim)
+        return grad_query.view(shape), grad_key.view(shape), grad_value.view(shape), None, None
 
 
 def _check_positive(**sizes: int) -> None:
@@ -172,12 +221,12 @@ class GraphAttention(nn.Module):
         """
         batch, n_agents, _ = x.shape
         columns, mask = neighbor_columns(neighbors, n_agents)
-        chunk_rows = n_agents * max(1, _CHUNK_ELEMENTS // (n_agents * self.n_heads * self.head_dim))
+        pattern = _attention_pattern(columns, self.n_heads)
         query, key, value = self.project(x)
-        mixed, weights = _NeighborAttention.apply(query, key, value, columns, mask, chunk_rows)
+        mixed, weights = _NeighborAttention.apply(query, key, value, pattern, mask)
         out = F.relu(self.output(mixed.reshape(batch, n_agents, -1)))
         if return_attention:
-            return out, weights.reshape(batch, n_agents, -1, self.n_heads).transpose(2, 3)
+            return out, weights.reshape(batch, n_agents, self.n_heads, -1)
         return out
 
 
