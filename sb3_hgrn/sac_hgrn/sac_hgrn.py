@@ -28,7 +28,10 @@ class SACHGRN(GraphOffPolicyAlgorithm):
     actor's entropy). With ``stochastic=False`` (``-S``) the actor acts greedily with epsilon-greedy
     exploration, the target follows the greedy action and the actor maximises ``sum_a pi(a|o) Q(o, a)``.
 
-    Units and the shared options: see :class:`~sb3_hgrn.soft_hgrn.SoftHGRN`.
+    Units and the shared options: see :class:`~sb3_hgrn.soft_hgrn.SoftHGRN`. Critic targets are
+    copied every ``target_update_interval`` gradient steps (``tau=1.0``); the original's
+    ``tau=0.01`` (used by ``presets.make_model(..., paper=True)``) left the critic behind a nearly
+    frozen target at CPU budgets (docs/results.md).
 
     :param actor_loss: ``"standard"`` or ``"policy_gradient"``.
     :param policy_kwargs: network options for both networks, plus ``n_critics``, ``actor_kwargs``
@@ -46,7 +49,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
         buffer_size: int = 1_000_000,
         learning_starts: int = 10_000,
         batch_size: int = 32,
-        tau: float = 0.01,
+        tau: float = 1.0,
         gamma: float = 0.95,
         train_freq: int | tuple[int, str] = 4,
         gradient_steps: int = 1,
