@@ -10,6 +10,8 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback, EventCallback
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_hgrn.common.off_policy import check_graph_env
+
 
 def evaluate_graph_policy(
     model: BaseAlgorithm,
@@ -31,9 +33,8 @@ def evaluate_graph_policy(
     :param return_episode_rewards: return the per-episode lists instead of mean and std.
     :return: ``(mean, std)`` of team returns, or ``(returns, lengths)``.
     """
-    n_agents = getattr(env, "n_agents", None)
-    if not isinstance(n_agents, int) or env.num_envs % n_agents != 0:
-        raise TypeError(f"evaluate_graph_policy needs a graph VecEnv, got {type(env).__name__}.")
+    env = check_graph_env(env)
+    n_agents = env.n_agents
     if n_eval_episodes < 1:
         raise ValueError(f"n_eval_episodes must be >= 1, got {n_eval_episodes}.")
     n_copies = env.num_envs // n_agents

@@ -156,6 +156,10 @@ class GraphPolicy(BasePolicy):
         """
         raise NotImplementedError
 
+    def forward(self, obs: GraphObs, deterministic: bool = False) -> th.Tensor:
+        """Actions ``(n_slots,)`` for a slot batch, starting from a zero recurrent state."""
+        return self._predict(obs, deterministic)
+
     def _predict(self, observation: GraphObs, deterministic: bool = False) -> th.Tensor:
         hidden = th.zeros(observation["obs"].shape[0], self.state_dim, device=self.device)
         return self.act(observation, hidden, deterministic)[0]

@@ -87,7 +87,7 @@ class TemperatureController:
         gradient = float(self.temperature.param.grad)
         bound = self.max_grad_ratio * float(self.temperature.alpha.detach())
         if self.temperature.log_space:
-            bound = self.max_grad_ratio  # d alpha = alpha * d log(alpha): the same relative bound
+            bound = self.max_grad_ratio  # a step in log(alpha) is already relative: clip it to the ratio
         self.temperature.param.grad.clamp_(-bound, bound)
         self.optimizer.step()
         with th.no_grad():

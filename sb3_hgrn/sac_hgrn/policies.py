@@ -82,9 +82,6 @@ class SACHGRNPolicy(GraphPolicy):
             actions = th.distributions.Categorical(logits=logits).sample()
         return actions.reshape(-1), th.cat(new_states, dim=-1).reshape(n_graphs * n_agents, -1)
 
-    def forward(self, obs: GraphObs, deterministic: bool = False) -> th.Tensor:
-        return self._predict(obs, deterministic)
-
     def set_training_mode(self, mode: bool) -> None:
         self.actor.train(mode)
         self.critics.train(mode)

@@ -8,7 +8,7 @@ import numpy as np
 import torch as th
 import torch.nn.functional as F
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.type_aliases import GymEnv, Schedule
 from stable_baselines3.common.utils import polyak_update
 
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
@@ -189,16 +189,3 @@ class SACHGRN(GraphOffPolicyAlgorithm):
         self.logger.record("train/critic_loss", float(np.mean(critic_losses)))
         self.logger.record("train/actor_loss", float(np.mean(actor_losses)))
         self._record_temperature(entropies, alpha_gradients)
-
-    def learn(
-        self,
-        total_timesteps: int,
-        callback: MaybeCallback = None,
-        log_interval: int = 4,
-        tb_log_name: str = "SACHGRN",
-        reset_num_timesteps: bool = True,
-        progress_bar: bool = False,
-    ) -> SACHGRN:
-        return super().learn(
-            total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar
-        )

@@ -53,9 +53,6 @@ class SoftHGRNPolicy(GraphPolicy):
             actions = th.distributions.Categorical(logits=logits).sample()
         return actions.reshape(-1), new_hidden.reshape(n_graphs * n_agents, -1)
 
-    def forward(self, obs: GraphObs, deterministic: bool = False) -> th.Tensor:
-        return self._predict(obs, deterministic)
-
     def set_training_mode(self, mode: bool) -> None:
         self.q_net.train(mode)
         self.training = mode

@@ -8,7 +8,7 @@ import numpy as np
 import torch as th
 import torch.nn.functional as F
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.type_aliases import GymEnv, Schedule
 from stable_baselines3.common.utils import polyak_update
 
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
@@ -168,16 +168,3 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/q_loss", float(np.mean(losses)))
         self._record_temperature(entropies, alpha_gradients)
-
-    def learn(
-        self,
-        total_timesteps: int,
-        callback: MaybeCallback = None,
-        log_interval: int = 4,
-        tb_log_name: str = "SoftHGRN",
-        reset_num_timesteps: bool = True,
-        progress_bar: bool = False,
-    ) -> SoftHGRN:
-        return super().learn(
-            total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar
-        )
