@@ -1,6 +1,7 @@
 """Team return of every preset on Surviving at one equal budget and seed.
 
-Run: python benchmarks/compare_presets.py [--agents 100] [--timesteps 2000000] [--presets dqn dgn ...]
+Run: python benchmarks/compare_presets.py [--agents 100] [--timesteps 2000000] [--threads 2]
+     [--presets dqn dgn ...]
 
 Each preset trains for ``--timesteps`` agent-steps on one env copy, then is evaluated for
 ``--eval-episodes`` team episodes (sampled actions for stochastic policies, greedy for the others).
@@ -29,10 +30,14 @@ def main() -> None:
     parser.add_argument("--eval-episodes", type=int, default=4)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--presets", nargs="+", default=list(PRESETS), choices=list(PRESETS))
+    parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     args = parser.parse_args()
-    th.set_num_threads(2)
+    th.set_num_threads(args.threads)
     env_kwargs = dict(n_agents=args.agents, map_size=args.map_size, max_cycles=args.max_cycles)
-    print(f"Surviving {args.agents} agents, {args.timesteps} agent-steps per preset, seed {args.seed}")
+    print(
+        f"Surviving {args.agents} agents, {args.timesteps} agent-steps per preset, seed {args.seed}, "
+        f"{args.threads} torch thread(s)"
+    )
     print("| preset | team return (mean +- std) | eval episodes | wall time |")
     print("|---|---|---|---|")
     for name in args.presets:

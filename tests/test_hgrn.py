@@ -6,7 +6,16 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from sb3_hgrn.common.hgrn import HGRN, PAPER_SIZE, GraphAttention, MeanCommunication, SelfOnly
+from sb3_hgrn.common.hgrn import (
+    HGRN,
+    MASKED_OUTPUT,
+    PAPER_SIZE,
+    GraphAttention,
+    GraphBatch,
+    MeanCommunication,
+    SelfOnly,
+    _NeighborAttention,
+)
 
 IN_DIM, OUT_DIM, HEADS, HEAD_DIM = 6, 7, 2, 3
 
@@ -208,11 +217,11 @@ def test_hgrn_hidden_state_matters():
 
 def test_hgrn_sizes():
     net = HGRN(obs_dim=5, n_actions=4, hidden_dim=32, n_heads=4)
-    assert net.comm1.query.out_features == 32
+    assert net.comm1.query[0].out_features == 32
     paper = HGRN(obs_dim=5, n_actions=4, **PAPER_SIZE)
-    assert paper.comm1.query.out_features == 1024
-    assert paper.gru.input_size == 768 and paper.head.in_features == 256
-    assert HGRN(obs_dim=5, n_actions=4, hidden_dim=32, recurrent=False).head.in_features == 96
+    assert paper.comm1.query[0].out_features == 1024
+    assert paper.gru[0].input_size == 768 and paper.head[0].in_features == 256
+    assert HGRN(obs_dim=5, n_actions=4, hidden_dim=32, recurrent=False).head[0].in_features == 96
 
 
 @pytest.mark.parametrize("communication", ["hgat", "mean", "none"])
@@ -229,7 +238,9 @@ def test_hgrn_gradients_reach_all_parameters(communication, recurrent):
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
-        ({"communication": "gat"}, "'gat'"),
+        ({"communication": "dense"}, "'dense'"),
+        ({"group_n_actions": [3, 5]}, "group_n_actions"),
+        ({"group_n_actions": [4, 0]}, "group_n_actions"),
         ({"hidden_dim": 0}, "hidden_dim"),
         ({"n_heads": -1}, "n_heads"),
         ({"head_dim": 0}, "head_dim"),
@@ -262,3 +273,146 @@ def test_hgrn_rejects_bad_inputs():
         with pytest.raises(ValueError):
             net(*args)
     net(obs, neighbors.to(torch.int32), hidden)  # any integer dtype is accepted
+
+
+# --- heterogeneous groups ------------------------------------------------------------------------
+# One graph of 4 agents: agents 0, 1 in group 0, agents 2, 3 in group 1.
+# Agent 0 lists 1 and 2; agent 1 lists nobody; agent 2 lists 0 and 3; agent 3 lists 2.
+GROUP_NEIGHBORS = torch.tensor([[[1, 2], [-1, -1], [0, 3], [2, -1]]])
+GROUPS = torch.tensor([[0, 0, 1, 1]])
+
+
+@pytest.fixture(params=[1, 2], ids=["1 head", "2 heads"])
+def hetero_layer(request) -> GraphAttention:
+    torch.manual_seed(0)
+    return GraphAttention(IN_DIM, OUT_DIM, n_heads=request.param, head_dim=HEAD_DIM, n_groups=2).double()
+
+
+def hand_hgat(layer: GraphAttention, x: torch.Tensor) -> torch.Tensor:
+    """HGAT written out agent by agent: receiver-owned query, sender-owned key/value, one softmax
+    per sender group over the listed neighbours (self included), zero message from a group without
+    neighbours, messages concatenated in group order, receiver-owned output map."""
+    groups = GROUPS[0].tolist()
+    heads = layer.n_heads
+    attended = {0: [0, 1, 2], 1: [1], 2: [2, 0, 3], 3: [3, 2]}
+    out = []
+    for i in range(4):
+        q = F.relu(layer.query[groups[i]](x[i])).reshape(heads, HEAD_DIM)
+        messages = []
+        for sender_group in (0, 1):
+            senders = [j for j in attended[i] if groups[j] == sender_group]
+            if not senders:
+                messages.append(torch.zeros(heads * HEAD_DIM, dtype=x.dtype))
+                continue
+            keys = torch.stack(
+                [F.relu(layer.key[sender_group](x[j])).reshape(heads, HEAD_DIM) for j in senders]
+            )
+            values = torch.stack(
+                [F.relu(layer.value[sender_group](x[j])).reshape(heads, HEAD_DIM) for j in senders]
+            )
+            weights = torch.softmax((keys * q).sum(-1) / math.sqrt(HEAD_DIM), dim=0)  # (senders, heads)
+            messages.append((weights.unsqueeze(-1) * values).sum(0).reshape(-1))
+        out.append(F.relu(layer.output[groups[i]](torch.cat(messages))))
+    return torch.stack(out)
+
+
+def test_hgat_matches_hand_computed_two_group_example(hetero_layer):
+    torch.manual_seed(2)
+    x = torch.randn(1, 4, IN_DIM, dtype=torch.double)
+    graph = GraphBatch(GROUP_NEIGHBORS, GROUPS, n_groups=2)
+    out, weights = hetero_layer(x, graph, return_attention=True)
+    torch.testing.assert_close(out[0], hand_hgat(hetero_layer, x[0]))
+    # agent 0 attends {0, 1} in group 0 and {2} alone in group 1: weight 1 on agent 2 in every head
+    torch.testing.assert_close(
+        weights[0, 0, :, 0] + weights[0, 0, :, 1], torch.ones(hetero_layer.n_heads).double()
+    )
+    assert (weights[0, 0, :, 2] == 1.0).all()
+
+
+def test_hgat_gives_zero_message_from_a_group_without_neighbours(hetero_layer):
+    torch.manual_seed(3)
+    x = torch.randn(1, 4, IN_DIM, dtype=torch.double)
+    graph = GraphBatch(GROUP_NEIGHBORS, GROUPS, n_groups=2)
+    query, key, value = hetero_layer.project(x, graph)
+    heads = hetero_layer.n_heads
+    messages, _ = _NeighborAttention.apply(query, key, value, graph.pattern(heads), graph.segments(True))
+    assert messages.shape == (4, 2, heads, HEAD_DIM)
+    assert messages[1, 1].abs().max() == 0  # agent 1 (group 0) has no group-1 neighbour
+    own_value = F.relu(hetero_layer.value[0](x[0, 1])).reshape(heads, HEAD_DIM)
+    torch.testing.assert_close(messages[1, 0], own_value)  # it attends to itself only
+
+
+def test_hgat_gradients_match_hand_computed(hetero_layer):
+    torch.manual_seed(4)
+    x = torch.randn(1, 4, IN_DIM, dtype=torch.double, requires_grad=True)
+    graph = GraphBatch(GROUP_NEIGHBORS, GROUPS, n_groups=2)
+    weight = torch.randn(4, OUT_DIM, dtype=torch.double)
+    params = [x, *hetero_layer.parameters()]
+    grads = torch.autograd.grad((hetero_layer(x, graph)[0] * weight).sum(), params, allow_unused=True)
+    expected = torch.autograd.grad((hand_hgat(hetero_layer, x[0]) * weight).sum(), params, allow_unused=True)
+    for grad, expected_grad in zip(grads, expected, strict=True):
+        if expected_grad is None:
+            assert grad is None or grad.abs().max() == 0
+        else:
+            torch.testing.assert_close(grad, expected_grad)
+    assert torch.autograd.gradcheck(lambda inp: hetero_layer(inp, graph), (x,))
+
+
+def test_own_group_attention_ignores_other_groups():
+    torch.manual_seed(0)
+    layer = GraphAttention(IN_DIM, OUT_DIM, 1, HEAD_DIM, n_groups=2, across_groups=False).double()
+    x = torch.randn(1, 4, IN_DIM, dtype=torch.double)
+    graph = GraphBatch(GROUP_NEIGHBORS, GROUPS, n_groups=2)
+    out = layer(x, graph)
+    changed = x.clone()
+    changed[0, 2] += 3.0  # group 1: listed by agent 0 (group 0) and agent 3 (group 1)
+    changed_out = layer(changed, graph)
+    torch.testing.assert_close(changed_out[0, :2], out[0, :2])
+    assert not torch.allclose(changed_out[0, 3], out[0, 3])
+
+
+@pytest.mark.parametrize("communication", ["hgat", "gat", "mean", "none"])
+def test_grouped_hgrn_masks_the_actions_a_group_lacks(communication):
+    torch.manual_seed(0)
+    net = HGRN(obs_dim=5, n_actions=4, hidden_dim=8, communication=communication, group_n_actions=[4, 2])
+    groups = GROUPS.repeat(3, 1)
+    obs = torch.randn(3, 4, 5)
+    hidden = torch.randn(3, 4, 8)
+    out, new_hidden = net(obs, GROUP_NEIGHBORS.repeat(3, 1, 1), hidden, groups)
+    assert out.shape == (3, 4, 4) and new_hidden.shape == (3, 4, 8)
+    assert (out[:, 2:, 2:] == MASKED_OUTPUT).all() and (out[:, :2] > MASKED_OUTPUT / 2).all()
+    assert (torch.softmax(out, dim=-1)[:, 2:, 2:] == 0).all()
+    # each group has its own parameters: the head of group 1 drives only agents 2 and 3
+    with torch.no_grad():
+        net.head[1].bias.add_(1.0)
+    shifted, _ = net(obs, GROUP_NEIGHBORS.repeat(3, 1, 1), hidden, groups)
+    torch.testing.assert_close(shifted[:, :2], out[:, :2])
+    torch.testing.assert_close(shifted[:, 2:, :2], out[:, 2:, :2] + 1.0)
+    with pytest.raises(ValueError, match="groups"):
+        net(obs, GROUP_NEIGHBORS.repeat(3, 1, 1), hidden)
+    with pytest.raises(ValueError, match="group ids"):
+        net(obs, GROUP_NEIGHBORS.repeat(3, 1, 1), hidden, torch.full_like(groups, 2))
+
+
+def test_grouped_network_with_identical_copies_equals_the_plain_network():
+    """Two groups with the same parameters, attending within their own group, compute what one
+    group computes on a graph whose edges all stay within a group."""
+    torch.manual_seed(0)
+    plain = HGRN(obs_dim=5, n_actions=4, hidden_dim=8, communication="gat")
+    grouped = HGRN(obs_dim=5, n_actions=4, hidden_dim=8, communication="gat", group_n_actions=[4, 4])
+    plain_parameters = dict(plain.named_parameters())
+    with torch.no_grad():
+        for name, parameter in grouped.named_parameters():
+            parameter.copy_(plain_parameters[name.replace(".members.1.", ".members.0.")])
+    obs, hidden = torch.randn(2, 4, 5), torch.randn(2, 4, 8)
+    within_groups = torch.tensor([[[1, -1], [0, -1], [3, -1], [2, -1]]]).repeat(2, 1, 1)
+    expected, expected_hidden = plain(obs, within_groups, hidden)
+    out, new_hidden = grouped(obs, within_groups, hidden, GROUPS.repeat(2, 1))
+    torch.testing.assert_close(out, expected)
+    torch.testing.assert_close(new_hidden, expected_hidden)
+    # across groups, own-group attention ignores the edges between groups
+    out_across, _ = grouped(obs, GROUP_NEIGHBORS.repeat(2, 1, 1), hidden, GROUPS.repeat(2, 1))
+    expected_across, _ = plain(
+        obs, torch.tensor([[[1, -1], [-1, -1], [3, -1], [2, -1]]]).repeat(2, 1, 1), hidden
+    )
+    torch.testing.assert_close(out_across, expected_across)

@@ -72,7 +72,7 @@ def test_temperature_moves_toward_the_target_on_a_controlled_batch(algorithm):
                       alpha_learning_rate=1.0, policy_kwargs=dict(hidden_dim=16), seed=0)  # fmt: skip
     model.learn(6 * 10)
     policy = model.policy
-    head = policy.q_net.head if algorithm is SoftHGRN else policy.actor.head
+    head = (policy.q_net if algorithm is SoftHGRN else policy.actor).head[0]
     for scale, direction in ((0.0, -1), (1e4, +1)):
         with th.no_grad():
             head.weight.normal_().mul_(scale)

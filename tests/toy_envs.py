@@ -6,7 +6,7 @@ import gymnasium as gym
 import numpy as np
 from pettingzoo import ParallelEnv
 
-from sb3_hgrn.common.graph_env import GraphParallelEnv
+from sb3_hgrn.common.graph_env import AgentGroup, GraphParallelEnv, padded_observation_space
 
 
 class NeighborBitEnv(GraphParallelEnv):
@@ -89,3 +89,57 @@ def bit_vec_env(n_envs: int = 4, n_agents: int = 4, seed: int = 0):
     from sb3_hgrn import make_graph_vec_env
 
     return make_graph_vec_env(lambda: NeighborBitEnv(n_agents, max_cycles=8), n_envs=n_envs, seed=seed)
+
+
+class SignalReaderEnv(GraphParallelEnv):
+    """Two agent groups: ``n_pairs`` signallers (observation: a fresh random bit and a 1; 2 actions)
+    and ``n_pairs`` readers (observation: a 0; 3 actions). Signaller ``k`` earns 1 when its action is
+    its own bit; reader ``k`` earns 1 when its action is the bit of signaller ``k``, its only
+    neighbour, and 0 for its third action. Without communication a reader scores 0.5 at best."""
+
+    metadata = {"render_modes": [], "name": "signal_reader"}
+
+    def __init__(self, n_pairs: int = 3, max_cycles: int = 8):
+        self.possible_agents = [f"signaller_{k}" for k in range(n_pairs)] + [
+            f"reader_{k}" for k in range(n_pairs)
+        ]
+        self.groups = (
+            AgentGroup("signaller", gym.spaces.Box(0, 1, shape=(2,), dtype=np.int8), gym.spaces.Discrete(2)),
+            AgentGroup("reader", gym.spaces.Box(0, 0, shape=(1,), dtype=np.int8), gym.spaces.Discrete(3)),
+        )
+        self.group_ids = np.repeat([0, 1], n_pairs)
+        self.shared_observation_space = padded_observation_space(self.groups)
+        self.shared_action_space = gym.spaces.Discrete(3)
+        self.max_neighbors = 2
+        self.max_cycles = max_cycles
+        self.render_mode = None
+        self._rng = np.random.default_rng()
+        partners = np.concatenate([np.arange(n_pairs), np.arange(n_pairs)])  # signaller k <-> reader k
+        self._graph = np.stack([np.arange(2 * n_pairs), partners], axis=1)
+        self._graph[:n_pairs, 1] = -1  # signallers listen to nobody
+
+    def _draw(self) -> np.ndarray:
+        n_pairs = self.n_agents // 2
+        self._bits = self._rng.integers(0, 2, size=n_pairs).astype(np.int8)
+        observations = np.zeros((self.n_agents, 2), dtype=np.int8)
+        observations[:n_pairs, 0] = self._bits
+        observations[:n_pairs, 1] = 1
+        return observations
+
+    def reset_arrays(self, seed=None, options=None):
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+        self._t = 0
+        return self._draw()
+
+    def step_arrays(self, actions):
+        n_pairs = self.n_agents // 2
+        if (actions[:n_pairs] >= 2).any():
+            raise ValueError("signallers have 2 actions")
+        rewards = (actions == np.concatenate([self._bits, self._bits])).astype(np.float32)
+        self._t += 1
+        done = np.full(self.n_agents, self._t >= self.max_cycles)
+        return self._draw(), rewards, np.zeros(self.n_agents, dtype=bool), done, {}
+
+    def neighbors(self):
+        return self._graph.copy()

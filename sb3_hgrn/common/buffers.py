@@ -22,6 +22,7 @@ class GraphSamples(NamedTuple):
     terminated: th.Tensor  # (batch, n_agents) float32, 1 where the episode really ended (not time-outs)
     hidden: th.Tensor  # (batch, n_agents, state_dim) recurrent state fed in (zero at episode starts)
     next_hidden: th.Tensor  # (batch, n_agents, state_dim) recurrent state produced by that step
+    groups: th.Tensor | None  # (batch, n_agents) int64 group ids (None for one group)
 
 
 def smallest_index_dtype(n_agents: int) -> np.dtype:
@@ -43,6 +44,8 @@ class GraphReplayBuffer(BaseBuffer):
     indices use the smallest integer type for the agent count, the recurrent state is stored once
     per step (by default in float16): row ``t`` holds the state carried into step ``t`` and a flag
     marking episode starts, and the state produced by step ``t`` is the one carried into ``t + 1``.
+    With agent groups (an observation key ``group``) the group ids are stored as int8; an agent's
+    group never changes, so they serve the next observations too.
 
     :param buffer_size: capacity in agent-transitions.
     :param observation_space: the graph VecEnv's Dict space (keys ``obs`` and ``neighbors``).
@@ -85,15 +88,16 @@ class GraphReplayBuffer(BaseBuffer):
         self.terminated = np.zeros(rows, dtype=bool)
         self.hidden = np.zeros((*rows, state_dim), dtype=hidden_dtype)
         self.episode_starts = np.zeros(rows[:2], dtype=bool)
+        self.groups = np.zeros(rows, dtype=np.int8) if "group" in observation_space.spaces else None
 
     @property
     def nbytes(self) -> int:
         """Bytes held by all storage arrays."""
         arrays = (
             self.observations, self.next_observations, self.neighbors, self.next_neighbors,
-            self.actions, self.rewards, self.terminated, self.hidden, self.episode_starts,
+            self.actions, self.rewards, self.terminated, self.hidden, self.episode_starts, self.groups,
         )  # fmt: skip
-        return sum(array.nbytes for array in arrays)
+        return sum(array.nbytes for array in arrays if array is not None)
 
     def add(
         self,
@@ -129,6 +133,8 @@ class GraphReplayBuffer(BaseBuffer):
         self.terminated[pos] = terminated.reshape(shape)
         self.hidden[pos] = hidden.reshape(*shape, -1)
         self.episode_starts[pos] = episode_starts.reshape(shape)[:, 0]
+        if self.groups is not None:
+            self.groups[pos] = obs["group"].reshape(shape)
         self.pos = (pos + 1) % self.buffer_size
         # the produced state is the one carried into the next step: it lands in the next row
         self.hidden[self.pos] = next_hidden.reshape(*shape, -1)
@@ -171,4 +177,5 @@ class GraphReplayBuffer(BaseBuffer):
             terminated=floats(self.terminated[rows, copies]),
             hidden=floats(hidden),
             next_hidden=floats(self.hidden[next_rows, copies]),
+            groups=None if self.groups is None else longs(self.groups[rows, copies]),
         )

@@ -8,19 +8,48 @@ calls the array methods directly and never builds per-agent dicts.
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Sequence
+from typing import Any, NamedTuple
 
 import gymnasium as gym
 import numpy as np
 from pettingzoo import ParallelEnv
 
 
+class AgentGroup(NamedTuple):
+    """A group of agents sharing spaces (and, in the models, parameters)."""
+
+    name: str
+    observation_space: gym.spaces.Box  # 1-D
+    action_space: gym.spaces.Discrete
+
+
+def padded_observation_space(groups: Sequence[AgentGroup]) -> gym.spaces.Box:
+    """The 1-D Box holding every group's observation padded with zeros to the widest one."""
+    width = max(group.observation_space.shape[0] for group in groups)
+    dtype = np.result_type(*(group.observation_space.dtype for group in groups))
+    low, high = np.zeros(width, dtype=dtype), np.zeros(width, dtype=dtype)
+    for group in groups:
+        dim = group.observation_space.shape[0]
+        low[:dim] = np.minimum(low[:dim], group.observation_space.low)
+        high[:dim] = np.maximum(high[:dim], group.observation_space.high)
+    return gym.spaces.Box(low, high, dtype=dtype)
+
+
 class GraphParallelEnv(ParallelEnv):
-    """A ``ParallelEnv`` whose agents share one observation and one action space and form a graph.
+    """A ``ParallelEnv`` whose agents form a graph and fall into groups with shared spaces.
 
     Subclasses set ``possible_agents``, ``shared_observation_space``, ``shared_action_space`` and
     ``max_neighbors`` in ``__init__`` and implement :meth:`reset_arrays`, :meth:`step_arrays` and
     :meth:`neighbors`. Agent ``i`` is ``possible_agents[i]`` everywhere.
+
+    Homogeneous envs have one group. A heterogeneous env also sets ``groups`` (one
+    :class:`AgentGroup` each) and ``group_ids`` ``(n_agents,)`` (the group of every agent); its
+    shared spaces are the widest: ``padded_observation_space(groups)`` and ``Discrete`` of the
+    largest action count. The array API then carries every observation zero-padded to the shared
+    width (group ``g`` fills the first ``groups[g].observation_space.shape[0]`` entries) and
+    takes actions below each agent's own group's action count; the dict API gives every agent its
+    own group's spaces.
     """
 
     metadata: dict[str, Any] = {"render_modes": ["rgb_array", "human"], "name": "graph_env"}
@@ -52,23 +81,66 @@ class GraphParallelEnv(ParallelEnv):
         """
         raise NotImplementedError
 
-    # --- PettingZoo API derived from the array API ---------------------------------------------
+    # --- groups ------------------------------------------------------------------------------
     @property
     def n_agents(self) -> int:
         return len(self.possible_agents)
 
+    @property
+    def groups(self) -> tuple[AgentGroup, ...]:
+        """The agent groups, in group-id order (one group ``"agent"`` unless a subclass sets them)."""
+        return getattr(self, "_groups", None) or (
+            AgentGroup("agent", self.shared_observation_space, self.shared_action_space),
+        )
+
+    @groups.setter
+    def groups(self, groups: Sequence[AgentGroup]) -> None:
+        self._groups = tuple(groups)
+
+    @property
+    def group_ids(self) -> np.ndarray:
+        """``(n_agents,)`` int64 group id of every agent (all 0 unless a subclass sets them)."""
+        ids = getattr(self, "_group_ids", None)
+        return np.zeros(self.n_agents, dtype=np.int64) if ids is None else ids
+
+    @group_ids.setter
+    def group_ids(self, ids: np.ndarray) -> None:
+        self._group_ids = np.asarray(ids, dtype=np.int64)
+
+    def _agent_group(self, agent: str) -> AgentGroup:
+        return self.groups[int(self.group_ids[self._agent_index[agent]])]
+
+    @property
+    def _agent_index(self) -> dict[str, int]:
+        index = getattr(self, "_agent_index_cache", None)
+        if index is None or len(index) != self.n_agents:
+            index = {agent: i for i, agent in enumerate(self.possible_agents)}
+            self._agent_index_cache = index
+        return index
+
+    # --- PettingZoo API derived from the array API ---------------------------------------------
     def observation_space(self, agent: str) -> gym.spaces.Box:
-        return self.shared_observation_space
+        return self._agent_group(agent).observation_space
 
     def action_space(self, agent: str) -> gym.spaces.Discrete:
-        return self.shared_action_space
+        return self._agent_group(agent).action_space
+
+    def _agent_observations(self, observations: np.ndarray) -> dict[str, np.ndarray]:
+        """Per-agent dict of observations, each cut back to its own group's width."""
+        if len(self.groups) == 1:
+            return dict(zip(self.agents, observations, strict=True))
+        widths = [group.observation_space.shape[0] for group in self.groups]
+        return {
+            agent: row[: widths[group]]
+            for agent, row, group in zip(self.agents, observations, self.group_ids.tolist(), strict=True)
+        }
 
     def reset(
         self, seed: int | None = None, options: dict | None = None
     ) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
         observations = self.reset_arrays(seed=seed, options=options)
         self.agents = list(self.possible_agents)
-        return dict(zip(self.agents, observations, strict=True)), {agent: {} for agent in self.agents}
+        return self._agent_observations(observations), {agent: {} for agent in self.agents}
 
     def step(self, actions: dict[str, int]) -> tuple[dict, dict, dict, dict, dict]:
         if not self.agents:
@@ -80,7 +152,7 @@ class GraphParallelEnv(ParallelEnv):
         observations, rewards, terminated, truncated, team_info = self.step_arrays(action_array)
         agents = self.agents
         result = (
-            dict(zip(agents, observations, strict=True)),
+            self._agent_observations(observations),
             dict(zip(agents, rewards.tolist(), strict=True)),
             dict(zip(agents, terminated.tolist(), strict=True)),
             dict(zip(agents, truncated.tolist(), strict=True)),

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 import torch
@@ -23,7 +24,10 @@ from torch import Tensor, nn
 PAPER_SIZE: dict = {"hidden_dim": 256, "n_heads": 4, "head_dim": 256}
 """Network size of the original HGRN (4 heads of width 256 on a hidden size of 256)."""
 
-COMMUNICATIONS = ("hgat", "mean", "none")
+COMMUNICATIONS = ("hgat", "gat", "mean", "none")
+
+MASKED_OUTPUT = -1e9
+"""Output of the actions an agent's group does not have: softmax gives them probability 0."""
 
 
 def neighbor_columns(neighbors: Tensor, n_agents: int) -> tuple[Tensor, Tensor]:
@@ -133,37 +137,60 @@ def _sampled_dot(pattern: _Pattern, left: Tensor, right: Tensor) -> Tensor:
 class _NeighborAttention(torch.autograd.Function):
     """Masked multi-head attention over gathered neighbours as sparse (CSR) matrix products.
 
-    Logits are sampled dot products at the listed entries only and the weighted sum of values is a
-    sparse-dense product, so nothing of size ``(rows, K + 1, heads, head_dim)`` is formed; the
+    Logits are sampled dot products at the listed entries only and the weighted sums of values are
+    sparse-dense products, so nothing of size ``(rows, K + 1, heads, head_dim)`` is formed; the
     backward pass uses the transposed pattern for the gradients of keys and values.
+
+    Entries may fall into several segments (the sender groups of heterogeneous attention): the
+    softmax then runs within each segment of a row separately and each segment gives its own
+    output, zero when the row has no entry in it. One segment is ordinary graph attention.
     """
 
     @staticmethod
     def forward(
-        ctx, query: Tensor, key: Tensor, value: Tensor, pattern: _Pattern, mask: Tensor
+        ctx, query: Tensor, key: Tensor, value: Tensor, pattern: _Pattern, segments: list[Tensor]
     ) -> tuple[Tensor, Tensor]:
-        """``query``/``key``/``value`` ``(rows, heads, head_dim)``, ``mask`` ``(rows, K + 1)``.
-        Returns output ``(rows, heads, head_dim)`` and attention weights ``(rows, heads, K + 1)``."""
+        """``query``/``key``/``value`` ``(rows, heads, head_dim)``; ``segments``: one bool mask
+        ``(rows, K + 1)`` per segment marking its entries (disjoint; entries in none are masked out).
+        Returns outputs ``(rows, n_segments, heads, head_dim)`` and attention weights
+        ``(rows, heads, K + 1)`` (each segment of a row sums to one, or to zero if it is empty)."""
         rows, heads, head_dim = query.shape
         scaled_query = (query * head_dim**-0.5).reshape(-1, head_dim)
         key, value = key.reshape(-1, head_dim), value.reshape(-1, head_dim)
         logits = _sampled_dot(pattern, scaled_query, key).view(rows, heads, -1)
-        weights = logits.masked_fill_(~mask.unsqueeze(1), -math.inf).softmax(dim=-1)
-        out = _matmul(pattern, weights, value).view(rows, heads, head_dim)
-        ctx.save_for_backward(scaled_query, key, value, weights)
+        if len(segments) == 1:
+            weights = logits.masked_fill_(~segments[0].unsqueeze(1), -math.inf).softmax(dim=-1)
+            outputs = [_matmul(pattern, weights, value)]
+        else:
+            selections = [segment.unsqueeze(1).to(logits.dtype) for segment in segments]
+            weights = torch.zeros_like(logits)
+            for segment in segments:
+                segment_weights = logits.masked_fill(~segment.unsqueeze(1), -math.inf).softmax(dim=-1)
+                weights += segment_weights.nan_to_num_(0.0)  # a row without entries in the segment
+            outputs = [_matmul(pattern, weights * selection, value) for selection in selections]
+        out = torch.stack([output.view(rows, heads, head_dim) for output in outputs], dim=1)
+        ctx.save_for_backward(scaled_query, key, value, weights, *segments)
         ctx.pattern = pattern
         ctx.mark_non_differentiable(weights)
         return out, weights
 
     @staticmethod
     def backward(ctx, grad_out: Tensor, _grad_weights: Tensor | None) -> tuple[Tensor | None, ...]:
-        scaled_query, key, value, weights = ctx.saved_tensors
+        scaled_query, key, value, weights, *segments = ctx.saved_tensors
         pattern = ctx.pattern
-        rows, heads, head_dim = grad_out.shape
-        grad_out = grad_out.reshape(-1, head_dim)
-        grad_weights = _sampled_dot(pattern, grad_out, value).view(weights.shape)
-        grad_logits = weights * (grad_weights - (weights * grad_weights).sum(dim=-1, keepdim=True))
-        grad_value = _matmul(pattern, weights, grad_out, transposed=True)
+        rows, n_segments, heads, head_dim = grad_out.shape
+        grad_weights = torch.zeros_like(weights)  # d loss / d weight of every entry
+        weighted_sums = torch.zeros_like(weights)  # per entry: sum over its segment of weight * that
+        grad_value = torch.zeros_like(value)
+        for index, segment in enumerate(segments):
+            selection = segment.unsqueeze(1).to(weights.dtype) if n_segments > 1 else 1.0
+            segment_grad_out = grad_out[:, index].reshape(-1, head_dim)
+            segment_weights = weights * selection
+            dots = _sampled_dot(pattern, segment_grad_out, value).view(weights.shape) * selection
+            grad_weights += dots
+            weighted_sums += (segment_weights * dots).sum(dim=-1, keepdim=True) * selection
+            grad_value += _matmul(pattern, segment_weights, segment_grad_out, transposed=True)
+        grad_logits = weights * (grad_weights - weighted_sums)
         grad_query = _matmul(pattern, grad_logits, key).mul_(head_dim**-0.5)
         grad_key = _matmul(pattern, grad_logits, scaled_query, transposed=True)
         shape = (rows, heads, head_dim)
@@ -176,55 +203,163 @@ def _check_positive(**sizes: int) -> None:
             raise ValueError(f"{name} must be positive, got {size}")
 
 
+class GraphBatch:
+    """A batch of graphs prepared once per forward pass and shared by the communication layers.
+
+    :param neighbors: ``(batch, n_agents, max_neighbors)`` agent indices within the same graph,
+        ``-1`` = no entry.
+    :param groups: ``(batch, n_agents)`` group id of every agent (``None``: all in group 0).
+    :param n_groups: number of agent groups the network has.
+    """
+
+    def __init__(self, neighbors: Tensor, groups: Tensor | None = None, n_groups: int = 1) -> None:
+        self.batch, self.n_agents = neighbors.shape[:2]
+        self.n_groups = n_groups
+        self.columns, self.mask = neighbor_columns(neighbors, self.n_agents)
+        self._patterns: dict[int, _Pattern] = {}
+        self.group_rows: list[Tensor] | None = None
+        self.group_inverse: Tensor | None = None
+        self.row_groups: Tensor | None = None
+        self.column_groups: Tensor | None = None
+        if n_groups > 1:
+            self._prepare_groups(groups)
+
+    def _prepare_groups(self, groups: Tensor | None) -> None:
+        if groups is None or tuple(groups.shape) != (self.batch, self.n_agents):
+            shape = None if groups is None else tuple(groups.shape)
+            raise ValueError(
+                f"A network of {self.n_groups} agent groups needs groups of shape "
+                f"{(self.batch, self.n_agents)}, got {shape}."
+            )
+        flat = groups.reshape(-1).long()
+        if flat.numel() and (int(flat.min()) < 0 or int(flat.max()) >= self.n_groups):
+            raise ValueError(f"group ids must lie in [0, {self.n_groups - 1}].")
+        self.row_groups = flat
+        self.group_rows = [torch.nonzero(flat == group).squeeze(1) for group in range(self.n_groups)]
+        self.group_inverse = torch.argsort(torch.cat(self.group_rows))
+        self.column_groups = flat[self.columns.t()]  # (rows, K + 1) group of every listed entry
+
+    def pattern(self, heads: int) -> _Pattern:
+        """CSR pattern of the attention with ``heads`` heads (built once per head count)."""
+        if heads not in self._patterns:
+            self._patterns[heads] = _attention_pattern(self.columns, heads)
+        return self._patterns[heads]
+
+    def segments(self, across_groups: bool) -> list[Tensor]:
+        """Bool masks ``(rows, K + 1)`` of the entries attended together: one per sender group
+        (``across_groups``), or a single one over the neighbours of the agent's own group."""
+        if self.n_groups == 1:
+            return [self.mask]
+        if across_groups:
+            return [self.mask & (self.column_groups == group) for group in range(self.n_groups)]
+        return [self.mask & (self.column_groups == self.row_groups.unsqueeze(1))]
+
+
+def _as_graph(graph: GraphBatch | Tensor) -> GraphBatch:
+    return graph if isinstance(graph, GraphBatch) else GraphBatch(graph)
+
+
+class Grouped(nn.Module):
+    """One copy of a module per agent group: every row goes through its agent's group's copy.
+
+    :param make: builds one copy.
+    :param n_groups: number of groups.
+    """
+
+    def __init__(self, make: Callable[[], nn.Module], n_groups: int = 1) -> None:
+        super().__init__()
+        _check_positive(n_groups=n_groups)
+        self.members = nn.ModuleList(make() for _ in range(n_groups))
+
+    def __getitem__(self, group: int) -> nn.Module:
+        return self.members[group]
+
+    def forward(self, *inputs: Tensor, graph: GraphBatch | None = None) -> Tensor:
+        """Apply the copies to ``inputs`` whose leading dimensions are the agents of ``graph``
+        (``(batch, n_agents, ...)`` or flattened ``(batch * n_agents, ...)``); one group needs no graph."""
+        if len(self.members) == 1:
+            return self.members[0](*inputs)
+        leading = inputs[0].shape[:-1]
+        flat = [x.reshape(-1, x.shape[-1]) for x in inputs]
+        outputs = [
+            member(*(x.index_select(0, rows) for x in flat))
+            for member, rows in zip(self.members, graph.group_rows, strict=True)
+        ]
+        out = torch.cat(outputs).index_select(0, graph.group_inverse)
+        return out.reshape(*leading, out.shape[-1])
+
+
 class GraphAttention(nn.Module):
-    """Multi-head graph attention over neighbour lists, self-loop always included.
+    """Multi-head (heterogeneous) graph attention over neighbour lists, self-loop always included.
 
     ``q, k, v = ReLU(Linear(x))`` with ``n_heads * head_dim`` features each; agent ``i`` attends over
     itself and its valid listed neighbours with logits ``q_i . k_j / sqrt(head_dim)``; heads are
     concatenated and mapped by ``ReLU(Linear(n_heads * head_dim -> out_dim))``.
 
+    With several agent groups (HGAT) the receiver's group owns the query and the output map, the
+    sender's group owns the key and value; ``across_groups=True`` attends over the neighbours of each
+    sender group separately, giving one message per group (zero if the agent has no neighbour of that
+    group), and maps the concatenated messages ``(n_groups * n_heads * head_dim)`` to ``out_dim``;
+    ``across_groups=False`` attends only over neighbours of the agent's own group. With one group
+    both are plain graph attention.
+
     :param in_dim: input features per agent.
     :param out_dim: output features per agent.
     :param n_heads: number of attention heads.
     :param head_dim: features per head.
+    :param n_groups: number of agent groups.
+    :param across_groups: attend over every sender group (HGAT) or within the own group only.
     """
 
-    def __init__(self, in_dim: int, out_dim: int, n_heads: int, head_dim: int) -> None:
+    def __init__(
+        self,
+        in_dim: int,
+        out_dim: int,
+        n_heads: int,
+        head_dim: int,
+        n_groups: int = 1,
+        across_groups: bool = True,
+    ) -> None:
         super().__init__()
         _check_positive(in_dim=in_dim, out_dim=out_dim, n_heads=n_heads, head_dim=head_dim)
         self.n_heads = n_heads
         self.head_dim = head_dim
+        self.across_groups = across_groups
         width = n_heads * head_dim
-        self.query = nn.Linear(in_dim, width)
-        self.key = nn.Linear(in_dim, width)
-        self.value = nn.Linear(in_dim, width)
-        self.output = nn.Linear(width, out_dim)
+        messages = n_groups if across_groups else 1
+        self.query = Grouped(lambda: nn.Linear(in_dim, width), n_groups)
+        self.key = Grouped(lambda: nn.Linear(in_dim, width), n_groups)
+        self.value = Grouped(lambda: nn.Linear(in_dim, width), n_groups)
+        self.output = Grouped(lambda: nn.Linear(messages * width, out_dim), n_groups)
 
-    def project(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def project(self, x: Tensor, graph: GraphBatch) -> tuple[Tensor, Tensor, Tensor]:
         """Queries, keys and values ``(batch * n_agents, n_heads, head_dim)`` of ``x``
         ``(batch, n_agents, in_dim)``."""
         shape = (-1, self.n_heads, self.head_dim)
-        return tuple(F.relu(layer(x)).reshape(shape) for layer in (self.query, self.key, self.value))
+        return tuple(
+            F.relu(layer(x, graph=graph)).reshape(shape) for layer in (self.query, self.key, self.value)
+        )
 
     def forward(
-        self, x: Tensor, neighbors: Tensor, return_attention: bool = False
+        self, x: Tensor, graph: GraphBatch | Tensor, return_attention: bool = False
     ) -> Tensor | tuple[Tensor, Tensor]:
         """Attend over neighbours.
 
         :param x: ``(batch, n_agents, in_dim)`` agent features.
-        :param neighbors: ``(batch, n_agents, max_neighbors)`` agent indices within the same graph,
-            ``-1`` = no entry.
+        :param graph: the prepared :class:`GraphBatch`, or neighbour lists ``(batch, n_agents,
+            max_neighbors)`` (agent indices within the same graph, ``-1`` = no entry) of one group.
         :param return_attention: also return the attention weights.
         :return: ``(batch, n_agents, out_dim)``; with ``return_attention`` also the weights
             ``(batch, n_agents, n_heads, max_neighbors + 1)``, column 0 being the agent itself and
-            column ``1 + m`` the list entry ``m`` (zero where the entry is empty or the agent itself).
+            column ``1 + m`` the list entry ``m`` (zero where the entry is empty, the agent itself, or
+            not attended); with several sender groups the weights of each group sum to one.
         """
+        graph = _as_graph(graph)
         batch, n_agents, _ = x.shape
-        columns, mask = neighbor_columns(neighbors, n_agents)
-        pattern = _attention_pattern(columns, self.n_heads)
-        query, key, value = self.project(x)
-        mixed, weights = _NeighborAttention.apply(query, key, value, pattern, mask)
-        out = F.relu(self.output(mixed.reshape(batch, n_agents, -1)))
+        query, key, value = self.project(x, graph)
+        segments = graph.segments(self.across_groups)
+        mixed, weights = _NeighborAttention.apply(query, key, value, graph.pattern(self.n_heads), segments)
+        out = F.relu(self.output(mixed.reshape(batch, n_agents, -1), graph=graph))
         if return_attention:
             return out, weights.reshape(batch, n_agents, self.n_heads, -1)
         return out
@@ -233,65 +368,77 @@ class GraphAttention(nn.Module):
 class MeanCommunication(nn.Module):
     """CommNet-style communication: ``ReLU(Linear([x_i, mean_j x_j]))`` over valid neighbours ``j != i``.
 
-    The mean is zero for an agent without neighbours.
+    The mean is zero for an agent without neighbours. With several groups, each receiver group has
+    its own output map.
 
     :param in_dim: input features per agent.
     :param out_dim: output features per agent.
+    :param n_groups: number of agent groups.
     """
 
-    def __init__(self, in_dim: int, out_dim: int) -> None:
+    def __init__(self, in_dim: int, out_dim: int, n_groups: int = 1) -> None:
         super().__init__()
         _check_positive(in_dim=in_dim, out_dim=out_dim)
-        self.output = nn.Linear(2 * in_dim, out_dim)
+        self.output = Grouped(lambda: nn.Linear(2 * in_dim, out_dim), n_groups)
 
-    def forward(self, x: Tensor, neighbors: Tensor) -> Tensor:
-        """:param x: ``(batch, n_agents, in_dim)``; :param neighbors: ``(batch, n_agents, max_neighbors)``.
-        :return: ``(batch, n_agents, out_dim)``."""
+    def forward(self, x: Tensor, graph: GraphBatch | Tensor) -> Tensor:
+        """:param x: ``(batch, n_agents, in_dim)``; :param graph: :class:`GraphBatch` or neighbour
+        lists ``(batch, n_agents, max_neighbors)``. :return: ``(batch, n_agents, out_dim)``."""
+        graph = _as_graph(graph)
         batch, n_agents, in_dim = x.shape
-        columns, mask = neighbor_columns(neighbors, n_agents)
-        others = mask[:, 1:].t().unsqueeze(-1).to(x.dtype)  # (K, rows, 1)
-        gathered = x.reshape(-1, in_dim).index_select(0, columns[1:].reshape(-1))
+        others = graph.mask[:, 1:].t().unsqueeze(-1).to(x.dtype)  # (K, rows, 1)
+        gathered = x.reshape(-1, in_dim).index_select(0, graph.columns[1:].reshape(-1))
         total = (gathered.reshape(*others.shape[:2], in_dim) * others).sum(0)
         mean = total / others.sum(0).clamp(min=1.0)
-        return F.relu(self.output(torch.cat([x, mean.reshape(batch, n_agents, in_dim)], dim=-1)))
+        joined = torch.cat([x, mean.reshape(batch, n_agents, in_dim)], dim=-1)
+        return F.relu(self.output(joined, graph=graph))
 
 
 class SelfOnly(nn.Module):
     """No communication (the "-G" ablation): attention over the agent alone.
 
     Equals :class:`GraphAttention` with an empty graph: ``ReLU(Linear(ReLU(Linear(x))))`` through
-    ``n_heads * head_dim`` value features.
+    ``n_heads * head_dim`` value features (per group with several groups).
 
     :param in_dim: input features per agent.
     :param out_dim: output features per agent.
     :param n_heads: number of (value) heads.
     :param head_dim: features per head.
+    :param n_groups: number of agent groups.
     """
 
-    def __init__(self, in_dim: int, out_dim: int, n_heads: int, head_dim: int) -> None:
+    def __init__(self, in_dim: int, out_dim: int, n_heads: int, head_dim: int, n_groups: int = 1) -> None:
         super().__init__()
         _check_positive(in_dim=in_dim, out_dim=out_dim, n_heads=n_heads, head_dim=head_dim)
-        self.value = nn.Linear(in_dim, n_heads * head_dim)
-        self.output = nn.Linear(n_heads * head_dim, out_dim)
+        self.value = Grouped(lambda: nn.Linear(in_dim, n_heads * head_dim), n_groups)
+        self.output = Grouped(lambda: nn.Linear(n_heads * head_dim, out_dim), n_groups)
 
-    def forward(self, x: Tensor, neighbors: Tensor) -> Tensor:
-        """:param x: ``(batch, n_agents, in_dim)``; :param neighbors: ignored.
+    def forward(self, x: Tensor, graph: GraphBatch | Tensor | None = None) -> Tensor:
+        """:param x: ``(batch, n_agents, in_dim)``; :param graph: groups only (neighbours are ignored).
         :return: ``(batch, n_agents, out_dim)``."""
-        return F.relu(self.output(F.relu(self.value(x))))
+        graph = graph if isinstance(graph, GraphBatch) else None
+        return F.relu(self.output(F.relu(self.value(x, graph=graph)), graph=graph))
 
 
 class HGRN(nn.Module):
     """Graph-recurrent network: encoder -> 2 communication hops -> skip concat -> GRUCell -> head.
 
-    :param obs_dim: observation features per agent.
-    :param n_actions: outputs per agent (Q-values or logits).
+    Agents of one group share parameters: with several groups (``group_n_actions``) every group has
+    its own encoder, attention projections, GRU and head, and the outputs of the actions a group
+    does not have are :data:`MASKED_OUTPUT` (so softmax, max and logsumexp over them ignore them).
+    Observations of all groups arrive zero-padded to one width ``obs_dim``; the padding is always
+    zero, so a group's encoder acts as one on its own observation width.
+
+    :param obs_dim: observation features per agent (the widest group's).
+    :param n_actions: outputs per agent (Q-values or logits; the largest group's action count).
     :param hidden_dim: hidden size ``H``.
     :param n_heads: attention heads.
     :param head_dim: features per head; None means ``hidden_dim // n_heads``.
-    :param communication: ``"hgat"`` (graph attention), ``"mean"`` (CommNet mean) or ``"none"``
-        (no communication).
+    :param communication: ``"hgat"`` (graph attention, over every sender group), ``"gat"``
+        (attention within the agent's own group only), ``"mean"`` (CommNet mean) or ``"none"``.
     :param recurrent: use a GRUCell on the ``3H`` skip concat; if False the head reads the concat
         directly and the recurrent state has width 0.
+    :param group_n_actions: action count of every agent group (``None``: one group).
     """
 
     def __init__(
@@ -303,6 +450,7 @@ class HGRN(nn.Module):
         head_dim: int | None = None,
         communication: str = "hgat",
         recurrent: bool = True,
+        group_n_actions: Sequence[int] | None = None,
     ) -> None:
         super().__init__()
         if communication not in COMMUNICATIONS:
@@ -310,42 +458,60 @@ class HGRN(nn.Module):
         _check_positive(obs_dim=obs_dim, n_actions=n_actions, hidden_dim=hidden_dim, n_heads=n_heads)
         head_dim = hidden_dim // n_heads if head_dim is None else head_dim
         _check_positive(head_dim=head_dim)
+        group_n_actions = [n_actions] if group_n_actions is None else [int(n) for n in group_n_actions]
+        if not group_n_actions or min(group_n_actions) < 1 or max(group_n_actions) != n_actions:
+            raise ValueError(
+                f"group_n_actions must be positive with maximum n_actions={n_actions}, got {group_n_actions}"
+            )
         self.obs_dim = obs_dim
         self.hidden_dim = hidden_dim
         self.recurrent = recurrent
-        self.encoder = nn.Sequential(nn.Linear(obs_dim, hidden_dim), nn.ReLU())
-        self.comm1 = _make_communication(communication, hidden_dim, n_heads, head_dim)
-        self.comm2 = _make_communication(communication, hidden_dim, n_heads, head_dim)
-        self.gru = nn.GRUCell(3 * hidden_dim, hidden_dim) if recurrent else None
-        self.head = nn.Linear(hidden_dim if recurrent else 3 * hidden_dim, n_actions)
+        self.n_groups = n_groups = len(group_n_actions)
+        self.register_buffer(
+            "valid_actions",
+            torch.arange(n_actions) < torch.tensor(group_n_actions).unsqueeze(1),
+            persistent=False,
+        )
+        self.encoder = Grouped(lambda: nn.Sequential(nn.Linear(obs_dim, hidden_dim), nn.ReLU()), n_groups)
+        self.comm1 = _make_communication(communication, hidden_dim, n_heads, head_dim, n_groups)
+        self.comm2 = _make_communication(communication, hidden_dim, n_heads, head_dim, n_groups)
+        self.gru = Grouped(lambda: nn.GRUCell(3 * hidden_dim, hidden_dim), n_groups) if recurrent else None
+        head_in = hidden_dim if recurrent else 3 * hidden_dim
+        self.head = Grouped(lambda: nn.Linear(head_in, n_actions), n_groups)
 
     @property
     def state_dim(self) -> int:
         """Width of the recurrent state per agent: ``hidden_dim`` if recurrent, else 0."""
         return self.hidden_dim if self.recurrent else 0
 
-    def forward(self, obs: Tensor, neighbors: Tensor, hidden: Tensor) -> tuple[Tensor, Tensor]:
+    def forward(
+        self, obs: Tensor, neighbors: Tensor, hidden: Tensor, groups: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
         """One step for all agents.
 
         :param obs: ``(batch, n_agents, obs_dim)`` float observations.
         :param neighbors: ``(batch, n_agents, max_neighbors)`` agent indices, ``-1`` = no entry;
             ``max_neighbors`` may be 0.
         :param hidden: ``(batch, n_agents, state_dim)`` recurrent state fed in.
+        :param groups: ``(batch, n_agents)`` group ids (needed with several groups).
         :return: outputs ``(batch, n_agents, n_actions)`` and the new state
             ``(batch, n_agents, state_dim)``.
         """
         self._check_inputs(obs, neighbors, hidden)
-        batch, n_agents, _ = obs.shape
-        encoded = self.encoder(obs)
-        hop1 = self.comm1(encoded, neighbors)
-        hop2 = self.comm2(hop1, neighbors)
+        graph = GraphBatch(neighbors, groups, self.n_groups)
+        encoded = self.encoder(obs, graph=graph)
+        hop1 = self.comm1(encoded, graph)
+        hop2 = self.comm2(hop1, graph)
         features = torch.cat([encoded, hop1, hop2], dim=-1)
-        if self.gru is None:
-            return self.head(features), hidden
-        new_hidden = self.gru(
-            features.reshape(batch * n_agents, -1), hidden.reshape(batch * n_agents, -1)
-        ).reshape(batch, n_agents, -1)
-        return self.head(new_hidden), new_hidden
+        if self.gru is not None:
+            rows = obs.shape[0] * obs.shape[1]
+            hidden = self.gru(features.reshape(rows, -1), hidden.reshape(rows, -1), graph=graph)
+            features = hidden = hidden.reshape(*obs.shape[:2], -1)
+        out = self.head(features, graph=graph)
+        if self.n_groups > 1:
+            valid = self.valid_actions[graph.row_groups].reshape(out.shape)
+            out = out.masked_fill(~valid, MASKED_OUTPUT)
+        return out, hidden
 
     def _check_inputs(self, obs: Tensor, neighbors: Tensor, hidden: Tensor) -> None:
         if obs.dim() != 3 or obs.shape[-1] != self.obs_dim:
@@ -360,9 +526,13 @@ class HGRN(nn.Module):
             raise ValueError(f"hidden must have shape {expected}, got {tuple(hidden.shape)}")
 
 
-def _make_communication(communication: str, hidden_dim: int, n_heads: int, head_dim: int) -> nn.Module:
-    if communication == "hgat":
-        return GraphAttention(hidden_dim, hidden_dim, n_heads, head_dim)
+def _make_communication(
+    communication: str, hidden_dim: int, n_heads: int, head_dim: int, n_groups: int
+) -> nn.Module:
+    if communication in ("hgat", "gat"):
+        return GraphAttention(
+            hidden_dim, hidden_dim, n_heads, head_dim, n_groups, across_groups=communication == "hgat"
+        )
     if communication == "mean":
-        return MeanCommunication(hidden_dim, hidden_dim)
-    return SelfOnly(hidden_dim, hidden_dim, n_heads, head_dim)
+        return MeanCommunication(hidden_dim, hidden_dim, n_groups)
+    return SelfOnly(hidden_dim, hidden_dim, n_heads, head_dim, n_groups)

@@ -18,7 +18,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_hgrn.common.buffers import GraphReplayBuffer
 from sb3_hgrn.common.policies import GraphPolicy, check_graph_spaces
-from sb3_hgrn.common.temperature import TemperatureController, target_entropy
+from sb3_hgrn.common.temperature import TemperatureController, group_means, target_entropy
 from sb3_hgrn.common.vec_env import make_graph_vec_env
 
 
@@ -43,6 +43,11 @@ def check_graph_env(env: Any) -> VecEnv:
     return env
 
 
+def env_action_counts(env: VecEnv) -> list[int]:
+    """Action count of every agent group of a graph VecEnv (one group unless it says otherwise)."""
+    return [int(n) for n in getattr(env, "group_n_actions", (env.action_space.n,))]
+
+
 class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
     """SB3 ``OffPolicyAlgorithm`` for graph VecEnvs whose slots are the agents of env copies.
 
@@ -61,6 +66,10 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
     The soft algorithms share a temperature alpha learned toward the target entropy
     ``target_entropy_ratio * log(n_actions)`` (see :mod:`sb3_hgrn.common.temperature`); the policy
     owns it as ``policy.temperature``. ``learn_alpha=False`` keeps alpha at ``alpha_init``.
+
+    Heterogeneous envs (several agent groups) give every group its own network parameters, its own
+    alpha and its own target entropy from its own action count; exploration and sampling never pick
+    an action outside the agent's group, and targets never bootstrap through one.
     """
 
     policy: GraphPolicy
@@ -139,6 +148,8 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         self.max_grad_norm = max_grad_norm
         self.hidden_dtype = hidden_dtype
         self.n_agents = env.n_agents if env is not None else None
+        if env is not None and len(env_action_counts(env)) > 1:
+            self.policy_kwargs["group_n_actions"] = env_action_counts(env)
         self._last_hidden: np.ndarray | None = None
         self._team_episodes: deque = deque(maxlen=stats_window_size)
 
@@ -160,26 +171,38 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
             self.exploration_initial_eps, self.exploration_final_eps, self.exploration_fraction
         )
         self._team_episodes = deque(maxlen=self._stats_window_size)
-        temperature = self.policy.temperature
-        with th.no_grad():
-            temperature.param.fill_(np.log(self.alpha_init) if temperature.log_space else self.alpha_init)
-        self.target_entropy = target_entropy(self.target_entropy_ratio, int(self.action_space.n))
+        self.policy.temperature.reset(self.alpha_init)
+        self.target_entropy = [
+            target_entropy(self.target_entropy_ratio, n) for n in self.policy.action_counts
+        ]
         self.temperature = TemperatureController(
-            temperature, self.target_entropy, self.alpha_optimizer, self.alpha_learning_rate
+            self.policy.temperature,
+            th.tensor(self.target_entropy),
+            self.alpha_optimizer,
+            self.alpha_learning_rate,
         )
 
-    def _update_temperature(self, entropy: th.Tensor) -> float | None:
-        """One temperature step toward the target given the batch's mean entropy; returns alpha's
-        gradient, or ``None`` when alpha is not learned."""
-        if not (self.stochastic and self.learn_alpha):
-            return None
-        return self.temperature.update(entropy)
+    def _update_temperature(
+        self, entropy: th.Tensor, groups: th.Tensor | None
+    ) -> tuple[np.ndarray, float | None]:
+        """Measure the mean policy entropy of every group from the per-agent entropies
+        ``(batch, n_agents)`` and step alpha toward the targets; returns the group entropies and
+        alpha's mean gradient (``None`` when alpha is not learned)."""
+        group_entropy = group_means(entropy.detach(), groups, self.policy.n_groups)
+        gradient = self.temperature.update(group_entropy) if self.stochastic and self.learn_alpha else None
+        return group_entropy.cpu().numpy(), gradient
 
-    def _record_temperature(self, entropies: list[float], alpha_gradients: list[float]) -> None:
-        """Log the mean policy entropy of the last training round, its target, alpha and its gradient."""
-        self.logger.record("train/entropy", float(np.mean(entropies)))
-        self.logger.record("train/target_entropy", self.target_entropy)
-        self.logger.record("train/alpha", float(self.policy.temperature.alpha.detach()))
+    def _record_temperature(self, entropies: list[np.ndarray], alpha_gradients: list[float]) -> None:
+        """Log the mean policy entropy of the last training round, its target, alpha and its gradient
+        (averaged over groups, and per group ``g`` as ``.../group_g`` with several groups)."""
+        entropy = np.nanmean(np.stack(entropies), axis=0)
+        alpha = self.policy.temperature.alpha.detach().cpu().numpy()
+        figures = {"entropy": entropy, "target_entropy": np.array(self.target_entropy), "alpha": alpha}
+        for name, values in figures.items():
+            self.logger.record(f"train/{name}", float(np.nanmean(values)))
+            if len(values) > 1:
+                for group, value in enumerate(values):
+                    self.logger.record(f"train/{name}/group_{group}", float(value))
         if alpha_gradients:
             self.logger.record("train/alpha_grad", float(np.mean(alpha_gradients)))
 
@@ -198,6 +221,11 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         """Attach another graph VecEnv (any number of copies or agents, the same spaces)."""
         env = check_graph_env(env)
+        if env_action_counts(env) != self.policy.action_counts:
+            raise ValueError(
+                f"The env's agent groups have {env_action_counts(env)} actions, the model's "
+                f"{self.policy.action_counts}."
+            )
         super().set_env(env, force_reset=force_reset)
         self.n_agents = env.n_agents
         self.policy.n_agents = env.n_agents
@@ -242,7 +270,8 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
                 obs_tensor, th.as_tensor(hidden, device=self.device), deterministic=False
             )
         actions = actions.cpu().numpy()
-        n_actions = int(self.action_space.n)
+        mask = self._last_obs.get("action_mask")
+        n_actions = int(self.action_space.n) if mask is None else mask.sum(axis=1)  # per slot
         if self.num_timesteps < learning_starts:
             actions = np.random.randint(0, n_actions, size=self.n_envs)
         elif self.exploration_rate > 0:

@@ -27,6 +27,8 @@ def check_graph_spaces(observation_space: spaces.Space, action_space: spaces.Spa
         )
     if not isinstance(action_space, spaces.Discrete):
         raise TypeError(f"Graph policies need a Discrete action space, got {action_space}.")
+    if ("group" in observation_space.spaces) != ("action_mask" in observation_space.spaces):
+        raise TypeError("A graph observation space with agent groups needs both 'group' and 'action_mask'.")
 
 
 class GraphPolicy(BasePolicy):
@@ -38,7 +40,8 @@ class GraphPolicy(BasePolicy):
     hyperparameter: the algorithm sets it from the env it runs on, so the same weights serve any
     agent count.
 
-    :param observation_space: Dict space with ``obs`` ``(obs_dim,)`` and ``neighbors`` ``(K,)``.
+    :param observation_space: Dict space with ``obs`` ``(obs_dim,)`` and ``neighbors`` ``(K,)``
+        (and ``group``, ``action_mask`` with agent groups).
     :param action_space: Discrete action space.
     :param lr_schedule: learning-rate schedule of the optimiser.
     :param hidden_dim: width H of the encoder, the attention layers and the recurrent state.
@@ -48,6 +51,8 @@ class GraphPolicy(BasePolicy):
     :param recurrent: use the GRU memory.
     :param stochastic: sample actions from the policy; ``False`` acts greedily (the ``-S`` variants).
     :param alpha_log_space: learn ``log(alpha)`` instead of the temperature alpha itself.
+    :param group_n_actions: action count of every agent group (set by the algorithm from a
+        heterogeneous env; ``None``: one group). Every group has its own network parameters and alpha.
     """
 
     def __init__(
@@ -62,6 +67,7 @@ class GraphPolicy(BasePolicy):
         recurrent: bool = True,
         stochastic: bool = True,
         alpha_log_space: bool = False,
+        group_n_actions: list[int] | None = None,
         optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: dict[str, Any] | None = None,
         normalize_images: bool = False,
@@ -81,11 +87,23 @@ class GraphPolicy(BasePolicy):
             communication=communication,
             recurrent=recurrent,
         )
+        if ("group" in observation_space.spaces) != (group_n_actions is not None):
+            raise ValueError(
+                "group_n_actions must be given exactly when the observations carry agent groups; build "
+                "the model from the heterogeneous graph VecEnv."
+            )
+        self.group_n_actions = None if group_n_actions is None else [int(n) for n in group_n_actions]
+        self.n_groups = 1 if group_n_actions is None else len(group_n_actions)
         self.lr_schedule = lr_schedule
         self.stochastic = stochastic
         self.alpha_log_space = alpha_log_space
-        self.temperature = EntropyTemperature(log_space=alpha_log_space)
+        self.temperature = EntropyTemperature(log_space=alpha_log_space, n_groups=self.n_groups)
         self.n_agents: int | None = None
+
+    @property
+    def action_counts(self) -> list[int]:
+        """Action count of every agent group."""
+        return self.group_n_actions or [int(self.action_space.n)]
 
     def make_network(self, **overrides: Any) -> HGRN:
         """A fresh HGRN mapping each agent's observation to one value per action.
@@ -95,6 +113,7 @@ class GraphPolicy(BasePolicy):
         return HGRN(
             obs_dim=self.observation_space["obs"].shape[0],
             n_actions=int(self.action_space.n),
+            group_n_actions=self.group_n_actions,
             **{**self.network_kwargs, **overrides},
         )
 
@@ -119,16 +138,19 @@ class GraphPolicy(BasePolicy):
             lr_schedule=self.lr_schedule,
             stochastic=self.stochastic,
             alpha_log_space=self.alpha_log_space,
+            group_n_actions=self.group_n_actions,
         )
         return data
 
     # --- graph batches ------------------------------------------------------------------------
-    def to_graphs(self, obs: GraphObs) -> tuple[th.Tensor, th.Tensor]:
+    def to_graphs(self, obs: GraphObs) -> tuple[th.Tensor, th.Tensor, th.Tensor | None]:
         """Slot batch -> graphs.
 
-        :param obs: ``{"obs": (n_slots, obs_dim), "neighbors": (n_slots, K)}`` tensors.
-        :return: observations ``(n_graphs, n_agents, obs_dim)`` float32 and neighbours
-            ``(n_graphs, n_agents, K)`` int64.
+        :param obs: ``{"obs": (n_slots, obs_dim), "neighbors": (n_slots, K)}`` tensors (and
+            ``"group": (n_slots,)`` with agent groups).
+        :return: observations ``(n_graphs, n_agents, obs_dim)`` float32, neighbours
+            ``(n_graphs, n_agents, K)`` int64 and group ids ``(n_graphs, n_agents)`` int64 (``None``
+            for one group).
         """
         n_slots = obs["obs"].shape[0]
         n_agents = self.n_agents
@@ -140,9 +162,11 @@ class GraphPolicy(BasePolicy):
                 "agents; predict() takes the observations of all slots of the graph VecEnv."
             )
         n_graphs = n_slots // n_agents
+        groups = obs.get("group")
         return (
             obs["obs"].reshape(n_graphs, n_agents, -1).float(),
             obs["neighbors"].reshape(n_graphs, n_agents, -1).long(),
+            None if groups is None else groups.reshape(n_graphs, n_agents).long(),
         )
 
     def act(

@@ -5,6 +5,9 @@ entropy ``H`` of the batch is measured and alpha takes one optimiser step on
 ``loss = alpha * (H - H_target)``: its gradient ``H - H_target`` lowers alpha while the policy is
 more random than the target and raises it while the policy is too greedy. As in the paper, the
 gradient is clipped to ``max_grad_ratio * alpha`` in magnitude and alpha stays above ``min_alpha``.
+
+With several agent groups every group has its own alpha and its own target from its own action
+count, and each group's alpha follows the mean entropy of that group's agents.
 """
 
 from __future__ import annotations
@@ -18,24 +21,36 @@ ALPHA_OPTIMIZERS = {"adam": th.optim.Adam, "sgd": th.optim.SGD}
 
 
 class EntropyTemperature(nn.Module):
-    """The temperature alpha as a learnable parameter (raw alpha, or its log with ``log_space``).
+    """The temperature alpha of every agent group as a learnable parameter ``(n_groups,)`` (raw alpha,
+    or its log with ``log_space``).
 
     It lives in the policy, so it is saved with the policy and ``predict`` can sample from
     ``softmax(Q / alpha)``.
     """
 
-    def __init__(self, initial_alpha: float = 0.1, log_space: bool = False):
+    def __init__(self, initial_alpha: float = 0.1, log_space: bool = False, n_groups: int = 1):
         super().__init__()
         if initial_alpha <= 0:
             raise ValueError(f"initial_alpha must be > 0, got {initial_alpha}.")
         self.log_space = log_space
-        value = math.log(initial_alpha) if log_space else initial_alpha
-        self.param = nn.Parameter(th.tensor(float(value)))
+        self.param = nn.Parameter(th.zeros(n_groups))
+        self.reset(initial_alpha)
+
+    def reset(self, alpha: float) -> None:
+        """Set every group's alpha to ``alpha``."""
+        with th.no_grad():
+            self.param.fill_(math.log(alpha) if self.log_space else alpha)
 
     @property
     def alpha(self) -> th.Tensor:
-        """Scalar alpha > 0 (carries gradient to ``param``)."""
+        """Alpha ``(n_groups,)`` > 0 (carries gradient to ``param``)."""
         return self.param.exp() if self.log_space else self.param
+
+    def per_agent(self, groups: th.Tensor | None) -> th.Tensor:
+        """Detached alpha of every agent: ``(batch, n_agents, 1)`` from group ids ``(batch, n_agents)``,
+        or ``(1,)`` (broadcasting over everything) when there is one group."""
+        alpha = self.alpha.detach()
+        return alpha if groups is None else alpha[groups].unsqueeze(-1)
 
 
 def target_entropy(ratio: float, n_actions: int) -> float:
@@ -51,11 +66,24 @@ def categorical_entropy(logits: th.Tensor) -> th.Tensor:
     return -(log_probs.exp() * log_probs).sum(dim=-1)
 
 
+def group_means(values: th.Tensor, groups: th.Tensor | None, n_groups: int) -> th.Tensor:
+    """Mean of ``values`` ``(batch, n_agents)`` over the agents of each group: ``(n_groups,)``
+    (NaN for a group absent from the batch)."""
+    if groups is None:
+        return values.mean().reshape(1)
+    flat_groups = groups.reshape(-1)
+    totals = th.zeros(n_groups, dtype=values.dtype, device=values.device).index_add_(
+        0, flat_groups, values.reshape(-1)
+    )
+    counts = th.bincount(flat_groups, minlength=n_groups).to(values.dtype)
+    return totals / counts
+
+
 class TemperatureController:
     """Optimises an :class:`EntropyTemperature` toward a target entropy.
 
     :param temperature: the policy's temperature module.
-    :param target: target entropy in nats.
+    :param target: target entropy in nats of every group ``(n_groups,)``.
     :param optimizer: ``"adam"`` or ``"sgd"``.
     :param learning_rate: learning rate of that optimiser.
     :param max_grad_ratio: gradients are clipped to ``max_grad_ratio * alpha`` in magnitude.
@@ -65,7 +93,7 @@ class TemperatureController:
     def __init__(
         self,
         temperature: EntropyTemperature,
-        target: float,
+        target: float | th.Tensor,
         optimizer: str = "adam",
         learning_rate: float = 1e-3,
         max_grad_ratio: float = 0.01,
@@ -74,21 +102,26 @@ class TemperatureController:
         if optimizer not in ALPHA_OPTIMIZERS:
             raise ValueError(f"alpha_optimizer must be one of {sorted(ALPHA_OPTIMIZERS)}, got {optimizer!r}.")
         self.temperature = temperature
-        self.target = target
+        self.target = th.as_tensor(target, dtype=th.float32).reshape(-1)
         self.max_grad_ratio = max_grad_ratio
         self.min_alpha = min_alpha
         self.optimizer = ALPHA_OPTIMIZERS[optimizer]([temperature.param], lr=learning_rate)
 
     def update(self, entropy: th.Tensor) -> float:
-        """One step toward the target given the measured mean entropy; returns alpha's gradient."""
+        """One step toward the target given the measured mean entropy of every group ``(n_groups,)``
+        (NaN for a group absent from the batch: its alpha stays); returns alpha's mean gradient."""
         self.optimizer.zero_grad()
-        loss = self.temperature.alpha * (entropy.detach() - self.target)
+        entropy = entropy.detach().reshape(-1)
+        gap = th.where(th.isnan(entropy), th.zeros_like(entropy), entropy - self.target.to(entropy))
+        loss = (self.temperature.alpha * gap).sum()
         loss.backward()
-        gradient = float(self.temperature.param.grad)
-        bound = self.max_grad_ratio * float(self.temperature.alpha.detach())
+        grad = self.temperature.param.grad
+        gradient = float(grad.mean())
         if self.temperature.log_space:
-            bound = self.max_grad_ratio  # a step in log(alpha) is already relative: clip it to the ratio
-        self.temperature.param.grad.clamp_(-bound, bound)
+            bound = th.full_like(grad, self.max_grad_ratio)  # a step in log(alpha) is already relative
+        else:
+            bound = self.max_grad_ratio * self.temperature.alpha.detach()
+        grad.copy_(th.minimum(th.maximum(grad, -bound), bound))
         self.optimizer.step()
         with th.no_grad():
             if self.temperature.log_space:

@@ -6,7 +6,10 @@ Each slot observes a dict with
 
 * ``"obs"``: ``(obs_dim,)`` the agent's local observation, in the env's own (compact) dtype;
 * ``"neighbors"``: ``(max_neighbors,)`` int32 indices of its neighbours within the same copy, the
-  agent itself first, ``-1`` for unused entries.
+  agent itself first, ``-1`` for unused entries;
+* with several agent groups (heterogeneous envs) also ``"group"``: ``()`` int8 the agent's group id
+  and ``"action_mask"``: ``(n_actions,)`` int8, 1 for the actions of its group. Observations are then
+  zero-padded to the widest group and the action space is that of the group with most actions.
 
 The neighbour space's bounds do not depend on the agent count, so a model trained with N agents
 loads onto an env with M agents.
@@ -26,7 +29,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvO
 
 from sb3_hgrn.common.graph_env import GraphParallelEnv
 
-REGISTERED_ENVS = ("surviving_v0",)
+REGISTERED_ENVS = ("surviving_v0", "uav_mbs_v0", "pursuit_v0", "ctc_v0")
 NEIGHBOR_INDEX_HIGH = np.iinfo(np.int32).max
 
 
@@ -131,20 +134,34 @@ class GraphVecEnv(VecEnv):
                     f"All env copies must have the same number of agents, got {env.n_agents} "
                     f"and {self.n_agents}."
                 )
+            if not np.array_equal(env.group_ids, first.group_ids):
+                raise ValueError("All env copies must have the same agent groups.")
         if self.n_agents < 2:
             raise ValueError(f"A graph env needs at least two agents, got {self.n_agents}.")
         obs_space = first.shared_observation_space
         if not isinstance(obs_space, gym.spaces.Box) or len(obs_space.shape) != 1:
             raise TypeError(f"Agent observations must be a 1-D Box space, got {obs_space}.")
-        observation_space = gym.spaces.Dict(
-            {
-                "obs": obs_space,
-                "neighbors": gym.spaces.Box(
-                    -1, NEIGHBOR_INDEX_HIGH, shape=(self.max_neighbors,), dtype=np.int32
-                ),
+        self.groups = first.groups
+        for group in self.groups:
+            if not isinstance(group.action_space, gym.spaces.Discrete):
+                raise TypeError(f"Graph envs need a Discrete action space, got {group.action_space}.")
+        self.group_n_actions = tuple(int(group.action_space.n) for group in self.groups)
+        spaces = {
+            "obs": obs_space,
+            "neighbors": gym.spaces.Box(-1, NEIGHBOR_INDEX_HIGH, shape=(self.max_neighbors,), dtype=np.int32),
+        }
+        self._group_keys: dict[str, np.ndarray] = {}
+        if len(self.groups) > 1:
+            n_actions = int(first.shared_action_space.n)
+            group_ids = np.tile(first.group_ids, self.n_copies)
+            masks = np.arange(n_actions) < np.array(self.group_n_actions)[:, None]
+            spaces["group"] = gym.spaces.Box(0, len(self.groups) - 1, shape=(), dtype=np.int8)
+            spaces["action_mask"] = gym.spaces.MultiBinary(n_actions)
+            self._group_keys = {
+                "group": group_ids.astype(np.int8),
+                "action_mask": masks[group_ids].astype(np.int8),
             }
-        )
-        super().__init__(self.n_copies * self.n_agents, observation_space, first.shared_action_space)
+        super().__init__(self.n_copies * self.n_agents, gym.spaces.Dict(spaces), first.shared_action_space)
         self._seeds_per_copy: list[int | None] = [None] * self.n_copies
         self._actions = np.zeros(self.num_envs, dtype=np.int64)
         self._team_returns = np.zeros(self.n_copies, dtype=np.float64)
@@ -208,18 +225,20 @@ class GraphVecEnv(VecEnv):
         one ``team_episode`` dict with the team return ``r``, the length ``l``, the env's team
         figures, and the whole graph's ``final_observation`` and ``terminated`` arrays.
         """
-        neighbors = graph.astype(np.int32)
+        slots = slice(copy * self.n_agents, (copy + 1) * self.n_agents)
+        final = {"obs": obs, "neighbors": graph.astype(np.int32)}
+        final.update({key: value[slots] for key, value in self._group_keys.items()})
         team_episode = {
             "r": float(self._team_returns[copy]),
             "l": int(self._episode_lengths[copy]),
             **team_info,
-            "final_observation": {"obs": obs, "neighbors": neighbors},
+            "final_observation": final,
             "terminated": terminated,
         }
         time_limit = (truncated & ~terminated).tolist()
         for agent in range(self.n_agents):
             infos[copy * self.n_agents + agent] = {
-                "terminal_observation": {"obs": obs[agent], "neighbors": neighbors[agent]},
+                "terminal_observation": {key: value[agent] for key, value in final.items()},
                 "TimeLimit.truncated": time_limit[agent],
                 "team_episode": team_episode,
             }
@@ -227,10 +246,18 @@ class GraphVecEnv(VecEnv):
         self._episode_lengths[copy] = 0
 
     def _stack(self, observations: list[np.ndarray], neighbors: list[np.ndarray]) -> dict[str, np.ndarray]:
-        return {
+        expected = (self.n_agents, self.max_neighbors)
+        for graph in neighbors:
+            if graph.shape != expected:
+                raise ValueError(
+                    f"neighbors() must return shape {expected} (max_neighbors), got {graph.shape}."
+                )
+        stacked = {
             "obs": np.concatenate(observations),
             "neighbors": np.concatenate(neighbors).astype(np.int32, copy=False),
         }
+        stacked.update({key: value.copy() for key, value in self._group_keys.items()})
+        return stacked
 
     def seed(self, seed: int | None = None) -> Sequence[None | int]:
         """Seed copy ``c`` with ``seed + c`` at the next ``reset()``; returns the per-slot seeds."""

@@ -12,6 +12,7 @@ from stable_baselines3.common.type_aliases import GymEnv, Schedule
 from stable_baselines3.common.utils import polyak_update
 
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
+from sb3_hgrn.common.temperature import categorical_entropy
 from sb3_hgrn.sac_hgrn.policies import SACHGRNPolicy
 
 ACTOR_LOSSES = ("standard", "policy_gradient")
@@ -129,8 +130,8 @@ class SACHGRN(GraphOffPolicyAlgorithm):
         if self.actor_loss == "standard":
             return (log_probs.exp() * (alpha * log_probs - q_values)).sum(dim=-1).mean()
         actions = th.distributions.Categorical(logits=logits.detach()).sample().unsqueeze(-1)
-        log_prob = log_probs.gather(-1, actions).squeeze(-1)
-        advantage = q_values.gather(-1, actions).squeeze(-1) - alpha * log_prob.detach()
+        log_prob = log_probs.gather(-1, actions)  # (batch, n_agents, 1), as alpha per agent
+        advantage = q_values.gather(-1, actions) - alpha * log_prob.detach()
         return -(log_prob * advantage).mean()
 
     def train(self, gradient_steps: int, batch_size: int = 32) -> None:
@@ -142,12 +143,14 @@ class SACHGRN(GraphOffPolicyAlgorithm):
             batch = self.replay_buffer.sample(batch_size)
             actor_state, *critic_states = policy.split_state(batch.hidden)
             next_actor_state, *next_critic_states = policy.split_state(batch.next_hidden)
-            alpha = policy.temperature.alpha.detach()
+            alpha = policy.temperature.per_agent(batch.groups)
             with th.no_grad():
-                next_logits, _ = policy.actor(batch.next_observations, batch.next_neighbors, next_actor_state)
+                next_logits, _ = policy.actor(
+                    batch.next_observations, batch.next_neighbors, next_actor_state, batch.groups
+                )
                 next_q = th.stack(
                     [
-                        target(batch.next_observations, batch.next_neighbors, state)[0]
+                        target(batch.next_observations, batch.next_neighbors, state, batch.groups)[0]
                         for target, state in zip(policy.critic_targets, next_critic_states, strict=True)
                     ]
                 ).amin(dim=0)
@@ -155,7 +158,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
                 target_q = batch.rewards + self.gamma * (1.0 - batch.terminated) * next_value
 
             q_values = [
-                critic(batch.observations, batch.neighbors, state)[0]
+                critic(batch.observations, batch.neighbors, state, batch.groups)[0]
                 for critic, state in zip(policy.critics, critic_states, strict=True)
             ]
             actions = batch.actions.unsqueeze(-1)
@@ -165,7 +168,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
             th.nn.utils.clip_grad_norm_(policy.critics.parameters(), self.max_grad_norm)
             policy.critic_optimizer.step()
 
-            logits, _ = policy.actor(batch.observations, batch.neighbors, actor_state)
+            logits, _ = policy.actor(batch.observations, batch.neighbors, actor_state, batch.groups)
             min_q = th.stack([q.detach() for q in q_values]).amin(dim=0)
             actor_loss = self._policy_loss(logits, min_q, alpha)
             policy.actor_optimizer.zero_grad()
@@ -173,14 +176,12 @@ class SACHGRN(GraphOffPolicyAlgorithm):
             th.nn.utils.clip_grad_norm_(policy.actor.parameters(), self.max_grad_norm)
             policy.actor_optimizer.step()
 
-            log_probs = th.log_softmax(logits.detach(), dim=-1)
-            entropy = -(log_probs.exp() * log_probs).sum(dim=-1).mean()
-            alpha_gradient = self._update_temperature(entropy)
+            entropy, alpha_gradient = self._update_temperature(categorical_entropy(logits), batch.groups)
             if alpha_gradient is not None:
                 alpha_gradients.append(alpha_gradient)
             critic_losses.append(critic_loss.item())
             actor_losses.append(actor_loss.item())
-            entropies.append(entropy.item())
+            entropies.append(entropy)
             self._n_updates += 1
             if self._n_updates % self.target_update_interval == 0:
                 polyak_update(policy.critics.parameters(), policy.critic_targets.parameters(), self.tau)

@@ -43,13 +43,15 @@ class SoftHGRNPolicy(GraphPolicy):
     def act(
         self, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False
     ) -> tuple[th.Tensor, th.Tensor]:
-        observations, neighbors = self.to_graphs(obs)
+        observations, neighbors, groups = self.to_graphs(obs)
         n_graphs, n_agents = observations.shape[:2]
-        q_values, new_hidden = self.q_net(observations, neighbors, hidden.reshape(n_graphs, n_agents, -1))
+        q_values, new_hidden = self.q_net(
+            observations, neighbors, hidden.reshape(n_graphs, n_agents, -1), groups
+        )
         if deterministic or not self.stochastic:
             actions = q_values.argmax(dim=-1)
         else:
-            logits = q_values / self.temperature.alpha.detach()
+            logits = q_values / self.temperature.per_agent(groups)
             actions = th.distributions.Categorical(logits=logits).sample()
         return actions.reshape(-1), new_hidden.reshape(n_graphs * n_agents, -1)
 

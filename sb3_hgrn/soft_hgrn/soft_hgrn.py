@@ -17,8 +17,9 @@ from sb3_hgrn.soft_hgrn.policies import SoftHGRNPolicy
 
 
 def soft_value(q_values: th.Tensor, alpha: th.Tensor) -> th.Tensor:
-    """``alpha * logsumexp(Q / alpha)`` over the last axis: ``(...)`` from ``(..., n_actions)``."""
-    return alpha * th.logsumexp(q_values / alpha, dim=-1)
+    """``alpha * logsumexp(Q / alpha)`` over the last axis: ``(...)`` from ``(..., n_actions)``;
+    ``alpha`` is ``(1,)`` or per agent ``(..., 1)``."""
+    return (alpha * th.logsumexp(q_values / alpha, dim=-1, keepdim=True)).squeeze(-1)
 
 
 class SoftHGRN(GraphOffPolicyAlgorithm):
@@ -141,13 +142,15 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
         losses, entropies, alpha_gradients = [], [], []
         for _ in range(gradient_steps):
             batch = self.replay_buffer.sample(batch_size)
-            alpha = self.policy.temperature.alpha.detach()
+            alpha = self.policy.temperature.per_agent(batch.groups)
             with th.no_grad():
-                next_q, _ = q_net_target(batch.next_observations, batch.next_neighbors, batch.next_hidden)
+                next_q, _ = q_net_target(
+                    batch.next_observations, batch.next_neighbors, batch.next_hidden, batch.groups
+                )
                 target_q = batch.rewards + self.gamma * (1.0 - batch.terminated) * self._next_value(
                     next_q, alpha
                 )
-            q_values, _ = q_net(batch.observations, batch.neighbors, batch.hidden)
+            q_values, _ = q_net(batch.observations, batch.neighbors, batch.hidden, batch.groups)
             taken_q = q_values.gather(-1, batch.actions.unsqueeze(-1)).squeeze(-1)
             loss = F.mse_loss(taken_q, target_q)
             self.policy.optimizer.zero_grad()
@@ -155,12 +158,13 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
             th.nn.utils.clip_grad_norm_(q_net.parameters(), self.max_grad_norm)
             self.policy.optimizer.step()
 
-            entropy = categorical_entropy(q_values.detach() / alpha).mean()
-            alpha_gradient = self._update_temperature(entropy)
+            entropy, alpha_gradient = self._update_temperature(
+                categorical_entropy(q_values.detach() / alpha), batch.groups
+            )
             if alpha_gradient is not None:
                 alpha_gradients.append(alpha_gradient)
             losses.append(loss.item())
-            entropies.append(entropy.item())
+            entropies.append(entropy)
             self._n_updates += 1
             if self._n_updates % self.target_update_interval == 0:
                 polyak_update(q_net.parameters(), q_net_target.parameters(), self.tau)

@@ -1,0 +1,458 @@
+"""Pursuit: predators tag prey on MAgent2's ``adversarial_pursuit_v4`` map; one side learns.
+
+PettingZoo-style module: ``pursuit_v0.parallel_env(learners="predator")`` builds a :class:`PursuitEnv`.
+Needs MAgent2 (``pip install magent2==0.3.4``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+
+from sb3_hgrn.common.graph import grid_neighbors
+from sb3_hgrn.common.graph_env import GraphParallelEnv
+from sb3_hgrn.common.policies import GraphPolicy
+
+SIDES = ("predator", "prey")
+SCRIPTED_CONTROLLERS = {"predator": ("random",), "prey": ("random", "evader")}
+DEFAULT_CONTROLLERS = {"predator": "random", "prey": "evader"}
+FIRST_TAG_ACTION = 5  # predator actions 5..12 tag one of the 8 cells touching the body
+PREDATOR_BODY = 2  # predators occupy 2 x 2 cells, prey 1 cell
+# Prey action a moves by (dx, dy) = (a % 3 - 1, a // 3 - 1); 4 stays (MAgent's move range, row-major).
+PREY_MOVES = np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], dtype=np.int32)
+MIN_MAP_SIZE = 9  # the smallest map with a predator: int(9 * 9 * 0.0125) = 1
+SEED_HIGH = 2**31 - 1  # MAgent takes a C int seed
+# sb3_hgrn algorithms by the package of the policy class recorded in a saved zip.
+MODEL_CLASSES = {"sb3_hgrn.soft_hgrn": "SoftHGRN", "sb3_hgrn.sac_hgrn": "SACHGRN"}
+
+
+class PursuitEnv(GraphParallelEnv):
+    """Pursuit (MAgent2 ``adversarial_pursuit_v4``): one side learns, a controller drives the other.
+
+    Map: ``map_size x map_size`` cells with a wall border and 3 % random walls; MAgent places
+    ``int(map_size**2 * 0.0125)`` predators (2 x 2 bodies) and ``int(map_size**2 * 0.025)`` prey
+    (1 cell) at random: 25 and 50 on the paper's 45 x 45 map. ``map_size >= 9`` (one predator);
+    a graph VecEnv needs two learners: ``map_size >= 13`` for predators, ``>= 9`` for prey.
+
+    Coordinates: a cell is ``(x, y)`` as MAgent's ``get_pos`` gives it, ``x`` the column and ``y`` the
+    row of the rendered map and of the observation windows. A predator's cell is the top-left
+    (smallest ``x`` and ``y``) cell of its body, which covers ``x..x+1, y..y+1``; all bodies have the
+    same shape, so distances between these cells equal distances between body centres.
+
+    Actions: predators ``Discrete(13)``: 0 ``y - 1``, 1 ``x - 1``, 2 stay, 3 ``x + 1``, 4 ``y + 1``,
+    5..12 tag one of the 8 cells touching the sides of the body: ``(x, y-1)``, ``(x+1, y-1)``,
+    ``(x-1, y)``, ``(x+2, y)``, ``(x-1, y+1)``, ``(x+2, y+1)``, ``(x, y+2)``, ``(x+1, y+2)``; prey
+    ``Discrete(9)``: action ``a`` moves by ``(a % 3 - 1, a // 3 - 1)`` (4 stays). A move into a wall
+    or an occupied cell fails.
+
+    Rewards (MAgent's): a predator gets ``+1`` per prey it tags plus ``tag_penalty`` (default -0.2)
+    per tag action, hit or miss; a prey gets ``-1`` each time it is tagged. Tags do no damage, so
+    nobody dies and episodes end only by truncation after ``max_cycles`` steps.
+
+    Observation of a learner: its MAgent view (predators 10 x 10, prey 9 x 9 cells around the body,
+    channels walls, own team, own team hp, other team, other team hp), flattened in
+    ``(row, column, channel)`` order to a uint8 vector of 500 (predators) or 405 (prey) zeros and ones.
+
+    Graph: learners within Euclidean distance ``comm_range`` of each other (self first, nearest
+    first, ties by lower index, at most ``max_neighbors``), see
+    :func:`sb3_hgrn.common.graph.grid_neighbors`.
+
+    Controllers of the other side: ``"random"`` (uniform actions), for prey ``"evader"``
+    (:func:`evader_actions`), or a model: any object with an sb3_hgrn-style
+    ``predict(obs_dict, state, episode_start, deterministic)`` (e.g. a loaded ``SoftHGRN``) or the
+    path of a saved sb3_hgrn model (see :func:`load_controller`). A model sees the controlled side's
+    observations and its own graph (``comm_range``, its saved neighbour width); its recurrent state is
+    threaded through the episode and reset at episode starts; the ``n_agents`` of a graph policy is
+    set to the number of controlled agents. Models act with ``controller_deterministic`` and draw
+    their samples from a torch CPU seed taken from the env's generator at every step (a model on a
+    GPU samples from the unseeded CUDA generator).
+
+    Seeding: one numpy generator, reseeded by ``reset(seed=...)`` (first reset without a seed: from
+    entropy; later unseeded resets continue it), seeds MAgent's engine at every reset (map, walls,
+    placement, order of tags) and drives the random controller and the torch seeds of model
+    controllers, so a seeded episode repeats exactly.
+
+    MAgent2 is driven through its raw ``GridWorld`` (``set_action``/``step``/``get_reward``/
+    ``get_observation``/``clear_dead`` on group arrays): 0.05 ms per step at map 45 against 0.3 ms
+    through its dict API. The env never steps MAgent outside an episode (stepping after the end
+    crashes MAgent2).
+
+    :param map_size: side of the square map in cells (45 in the paper).
+    :param max_cycles: steps per episode.
+    :param learners: ``"predator"`` or ``"prey"``: the side whose agents are this env's agents.
+    :param prey_controller: controller of the prey when predators learn (default ``"evader"``).
+    :param predator_controller: controller of the predators when prey learn (default ``"random"``).
+    :param controller_class: sb3_hgrn algorithm class used to load a controller given as a path
+        (``None``: read from the saved zip).
+    :param controller_deterministic: greedy actions for model controllers.
+    :param tag_penalty: predator reward per tag action.
+    :param comm_range: communication range in cells (Euclidean).
+    :param max_neighbors: width of the neighbour lists, self included.
+    :param render_mode: ``None``, ``"rgb_array"`` (MAgent2's frame) or ``"human"`` (a pygame window).
+    """
+
+    metadata: dict[str, Any] = {
+        "render_modes": ["rgb_array", "human"],
+        "name": "pursuit_v0",
+        "render_fps": 5,
+    }
+
+    def __init__(
+        self,
+        map_size: int = 45,
+        max_cycles: int = 500,
+        learners: str = "predator",
+        prey_controller: Any = None,
+        predator_controller: Any = None,
+        controller_class: type | None = None,
+        controller_deterministic: bool = False,
+        tag_penalty: float = -0.2,
+        comm_range: float = 6.0,
+        max_neighbors: int = 16,
+        render_mode: str | None = None,
+    ) -> None:
+        _check_arguments(map_size, max_cycles, learners, comm_range, max_neighbors)
+        render_modes = self.metadata["render_modes"]
+        if render_mode is not None and render_mode not in render_modes:
+            raise ValueError(f"render_mode must be None or one of {render_modes}, got {render_mode!r}.")
+        try:
+            from magent2.environments import adversarial_pursuit_v4
+        except ImportError as error:
+            raise ImportError("pursuit_v0 needs MAgent2: pip install magent2==0.3.4") from error
+
+        self.map_size = map_size
+        self.max_cycles = max_cycles
+        self.learners = learners
+        self.tag_penalty = tag_penalty
+        self.comm_range = comm_range
+        self.max_neighbors = max_neighbors
+        self.controller_deterministic = controller_deterministic
+        self.render_mode = render_mode
+        self._magent = adversarial_pursuit_v4.parallel_env(
+            map_size=map_size, max_cycles=max_cycles, render_mode=render_mode, tag_penalty=tag_penalty
+        )
+        self._grid = self._magent.env  # MAgent's GridWorld
+        predator_handle, prey_handle = self._magent.handles
+        self.opponents = SIDES[1 - SIDES.index(learners)]
+        self._handles = {"predator": predator_handle, "prey": prey_handle}
+        self._sizes = {side: self._grid.get_num(handle) for side, handle in self._handles.items()}
+        if min(self._sizes.values()) < 1:
+            raise ValueError(f"map_size {map_size} gives {self._sizes}; use map_size >= {MIN_MAP_SIZE}.")
+        self.possible_agents = [f"{learners}_{i}" for i in range(self._sizes[learners])]
+        self.agents: list[str] = []
+        self._obs_dims = {
+            side: int(np.prod(self._grid.get_view_space(handle))) for side, handle in self._handles.items()
+        }
+        self._n_actions = {
+            side: int(self._grid.get_action_space(handle)[0]) for side, handle in self._handles.items()
+        }
+        self.shared_observation_space = gym.spaces.Box(0, 1, (self._obs_dims[learners],), dtype=np.uint8)
+        self.shared_action_space = gym.spaces.Discrete(self._n_actions[learners])
+
+        controllers = {"predator": predator_controller, "prey": prey_controller}
+        if controllers[learners] is not None:
+            raise ValueError(f"{learners}_controller must be None when the {learners} side learns.")
+        self.controller = _resolve_controller(controllers[self.opponents], self.opponents, controller_class)
+        self._controller_kind = self.controller if isinstance(self.controller, str) else "model"
+        self._controller_width = self._check_model_controller()
+
+        self._rng: np.random.Generator | None = None
+        self._walls = np.zeros((map_size, map_size), dtype=bool)
+        self._controller_state: Any = None
+        self._controller_episode_start = np.ones(self._sizes[self.opponents], dtype=bool)
+        self._steps = 0
+        self._episode_tags = 0
+        self._episode_running = False
+        self._neighbor_cache: np.ndarray | None = None
+        self._cell_cache: dict[str, np.ndarray] = {}
+
+    def _check_model_controller(self) -> int:
+        """Check a model controller against the controlled side; returns its neighbour-list width."""
+        if self._controller_kind != "model":
+            return self.max_neighbors
+        space = getattr(self.controller, "observation_space", None)
+        width = self.max_neighbors
+        if isinstance(space, gym.spaces.Dict):
+            obs_dim = self._obs_dims[self.opponents]
+            if space["obs"].shape != (obs_dim,):
+                raise ValueError(
+                    f"The {self.opponents} controller takes observations of shape {space['obs'].shape}, "
+                    f"but {self.opponents} observations have shape ({obs_dim},): was it trained on that side?"
+                )
+            width = int(space["neighbors"].shape[0])
+        policy = getattr(self.controller, "policy", self.controller)
+        if isinstance(policy, GraphPolicy):
+            policy.n_agents = self._sizes[self.opponents]
+        return width
+
+    # --- array API ------------------------------------------------------------------------------
+    def reset_arrays(self, seed: int | None = None, options: dict | None = None) -> np.ndarray:
+        """Start an episode. Returns the learners' observations ``(n_agents, obs_dim)`` uint8.
+
+        ``seed`` reseeds the generator; without it the first reset seeds from entropy and later
+        resets continue the generator.
+        """
+        if seed is not None or self._rng is None:
+            self._rng = np.random.default_rng(seed)
+        self._grid.set_seed(int(self._rng.integers(SEED_HIGH)))
+        self._grid.reset()
+        self._magent.generate_map()
+        sizes = {side: self._grid.get_num(handle) for side, handle in self._handles.items()}
+        if sizes != self._sizes:
+            raise RuntimeError(f"MAgent2 placed {sizes} agents instead of {self._sizes}.")
+        if self._controller_kind == "evader":
+            walls = self._grid._get_walls_info()
+            self._walls[:] = False
+            self._walls[walls[:, 0], walls[:, 1]] = True
+        self._controller_state = None
+        self._controller_episode_start[:] = True
+        self._steps = 0
+        self._episode_tags = 0
+        self._episode_running = True
+        self._neighbor_cache = None
+        self._cell_cache = {}
+        return self._observe(self.learners)
+
+    def step_arrays(
+        self, actions: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """Advance one step with the learners' ``actions`` ``(n_agents,)``.
+
+        Returns ``(observations (n_agents, obs_dim) uint8, rewards (n_agents,) float32,
+        terminated (n_agents,) bool (never true), truncated (n_agents,) bool, team_info)`` with
+        ``team_info = {"tags": int, "tag_attempts": int, "episode_tags": int}``: prey tagged this
+        step (a prey tagged by two predators counts twice), tag actions of all predators this step
+        (hits and misses), and tags since the episode started.
+        """
+        if not self._episode_running:
+            raise RuntimeError(
+                "step_arrays() called outside an episode (MAgent2 crashes when stepped after the end); "
+                "call reset_arrays() first."
+            )
+        actions = np.asarray(actions)
+        n_actions = self._n_actions[self.learners]
+        if actions.shape != (self.n_agents,) or actions.min() < 0 or actions.max() >= n_actions:
+            raise ValueError(
+                f"actions must be an integer array of shape ({self.n_agents},) with values "
+                f"0..{n_actions - 1}."
+            )
+        side_actions = {
+            self.learners: actions.astype(np.int32),
+            self.opponents: self._controller_actions(),
+        }
+        for side, handle in self._handles.items():
+            self._grid.set_action(handle, side_actions[side])
+        self._grid.step()
+        rewards = self._grid.get_reward(self._handles[self.learners])
+        prey_rewards = rewards if self.learners == "prey" else self._grid.get_reward(self._handles["prey"])
+        observations = self._observe(self.learners)
+        self._grid.clear_dead()
+
+        tags = round(-float(prey_rewards.sum()))
+        self._episode_tags += tags
+        self._steps += 1
+        self._neighbor_cache = None
+        self._cell_cache = {}
+        truncated = self._steps >= self.max_cycles
+        self._episode_running = not truncated
+        team_info = {
+            "tags": tags,
+            "tag_attempts": int(np.count_nonzero(side_actions["predator"] >= FIRST_TAG_ACTION)),
+            "episode_tags": self._episode_tags,
+        }
+        return (
+            observations,
+            rewards,
+            np.zeros(self.n_agents, dtype=bool),
+            np.full(self.n_agents, truncated),
+            team_info,
+        )
+
+    def neighbors(self) -> np.ndarray:
+        """Learners within Euclidean distance ``comm_range``: ``(n_agents, max_neighbors)`` int64.
+
+        Row ``i`` is ``i`` itself, then its neighbours nearest first (ties by lower index); ``-1`` pads.
+        The array is computed once per step and returned read-only.
+        """
+        if self._neighbor_cache is None:
+            self._neighbor_cache = grid_neighbors(
+                self.agent_cells(), self.comm_range, self.max_neighbors, "euclidean"
+            )
+            self._neighbor_cache.flags.writeable = False
+        return self._neighbor_cache
+
+    # --- state read-out (analysis, tests) -------------------------------------------------------
+    def predator_cells(self) -> np.ndarray:
+        """Top-left cells of the predators' bodies ``(n_predators, 2)`` int64 as ``(x, y)``, read-only."""
+        return self._cells("predator")
+
+    def prey_cells(self) -> np.ndarray:
+        """Prey cells ``(n_prey, 2)`` int64 as ``(x, y)``, read-only."""
+        return self._cells("prey")
+
+    def agent_cells(self) -> np.ndarray:
+        """The learners' cells ``(n_agents, 2)`` int64 as ``(x, y)`` (the graph's positions), read-only."""
+        return self._cells(self.learners)
+
+    def _cells(self, side: str) -> np.ndarray:
+        """Cells of one side, read from MAgent once per step."""
+        cells = self._cell_cache.get(side)
+        if cells is None:
+            cells = self._grid.get_pos(self._handles[side]).astype(np.int64)
+            cells.flags.writeable = False
+            self._cell_cache[side] = cells
+        return cells
+
+    # --- the other side -------------------------------------------------------------------------
+    def _observe(self, side: str) -> np.ndarray:
+        """Observations of one side ``(n, obs_dim)`` uint8 (copied out of MAgent's buffer)."""
+        views, _ = self._grid.get_observation(self._handles[side])
+        return views.reshape(len(views), -1).astype(np.uint8)
+
+    def _controller_actions(self) -> np.ndarray:
+        """Actions ``(n_controlled,)`` int32 of the controlled side in the current state."""
+        side = self.opponents
+        if self._controller_kind == "random":
+            return self._rng.integers(0, self._n_actions[side], size=self._sizes[side], dtype=np.int32)
+        if self._controller_kind == "evader":
+            return evader_actions(self.prey_cells(), self.predator_cells(), self._walls).astype(np.int32)
+        graph = grid_neighbors(self._cells(side), self.comm_range, self._controller_width, "euclidean")
+        observations = {"obs": self._observe(side), "neighbors": graph.astype(np.int32)}
+        # A seed per step from the env's generator makes sampling models repeatable; the caller's
+        # torch RNG state is restored (th.manual_seed is 100x slower than seeding the CPU generator).
+        with th.random.fork_rng(devices=[]):
+            th.default_generator.manual_seed(int(self._rng.integers(SEED_HIGH)))
+            actions, self._controller_state = self.controller.predict(
+                observations,
+                state=self._controller_state,
+                episode_start=self._controller_episode_start,
+                deterministic=self.controller_deterministic,
+            )
+        self._controller_episode_start[:] = False
+        return np.asarray(actions, dtype=np.int32).reshape(self._sizes[side])
+
+    # --- rendering ------------------------------------------------------------------------------
+    def render(self) -> np.ndarray | None:
+        """MAgent2's picture of the map: ``"rgb_array"`` returns it (``(376, 360, 3)`` uint8 at map 45),
+        ``"human"`` shows it in a pygame window (headless: set ``SDL_VIDEODRIVER=dummy``)."""
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' or 'human'.")
+            return None
+        return self._magent.render()
+
+    def close(self) -> None:
+        """Close MAgent2's renderer if one was opened."""
+        self._magent.close()
+
+
+def evader_actions(prey_cells: np.ndarray, predator_cells: np.ndarray, walls: np.ndarray) -> np.ndarray:
+    """Scripted prey: every prey takes the move that gets it farthest from the nearest predator.
+
+    Distances are Euclidean from a cell to the nearest cell of a predator's 2 x 2 body. Each prey
+    picks its nearest predator (ties: lower index), then, among the 9 moves (staying included) whose
+    target is not a wall, the one whose target lies farthest from that predator's body (ties: lower
+    action). Cells held by other agents are not avoided: MAgent then leaves the prey in place.
+
+    Args:
+        prey_cells: ``(n_prey, 2)`` integer prey cells ``(x, y)``.
+        predator_cells: ``(n_predators, 2)`` integer top-left cells of the predators' bodies.
+        walls: ``(map_size, map_size)`` bool, ``walls[x, y]`` true on walls, including a border
+            ring that every prey stands inside.
+
+    Returns:
+        ``(n_prey,)`` int64 prey actions in ``0..8`` (action ``a`` moves by ``(a % 3 - 1, a // 3 - 1)``).
+    """
+    # Doubled coordinates keep everything integer: a body's centre is 2 * corner + 1 and a cell's gap to
+    # the body along an axis is (|2 * cell - centre| - 1) / 2; squared doubled gaps rank like distances.
+    doubled_prey = 2 * np.asarray(prey_cells, dtype=np.int32)
+    centres = 2 * np.asarray(predator_cells, dtype=np.int32) + PREDATOR_BODY - 1
+    x, y = doubled_prey[:, 0:1], doubled_prey[:, 1:2]
+    nearest = np.argmin(_doubled_squared_gaps(x, y, centres[:, 0], centres[:, 1]), axis=1)
+    target_x, target_y = x + 2 * PREY_MOVES[:, 0], y + 2 * PREY_MOVES[:, 1]
+    centre_x, centre_y = centres[nearest, 0:1], centres[nearest, 1:2]
+    scores = _doubled_squared_gaps(target_x, target_y, centre_x, centre_y)  # (n_prey, 9)
+    scores[walls[target_x >> 1, target_y >> 1]] = -1
+    return np.argmax(scores, axis=1)
+
+
+def _doubled_squared_gaps(
+    x: np.ndarray, y: np.ndarray, centre_x: np.ndarray, centre_y: np.ndarray
+) -> np.ndarray:
+    """Squared doubled gaps ``(2 gap_x)**2 + (2 gap_y)**2`` of doubled cells to doubled body centres."""
+    gap_x, gap_y = np.abs(x - centre_x) - 1, np.abs(y - centre_y) - 1
+    return gap_x * gap_x + gap_y * gap_y
+
+
+def load_controller(path: str | os.PathLike, controller_class: type | None = None) -> Any:
+    """Load a saved sb3_hgrn model (on the CPU) to drive one side of :class:`PursuitEnv`.
+
+    :param path: the ``.zip`` written by ``model.save`` (the suffix may be left out, as in SB3).
+    :param controller_class: class whose ``load`` reads it; ``None`` picks ``SoftHGRN`` or ``SACHGRN``
+        from the policy class recorded in the zip.
+    """
+    path = os.fspath(path)
+    if not os.path.exists(path) and os.path.exists(path + ".zip"):
+        path += ".zip"
+    if controller_class is None:
+        with zipfile.ZipFile(path) as archive:
+            policy_module = json.loads(archive.read("data"))["policy_class"].get("__module__", "")
+        package = policy_module.rpartition(".")[0]
+        if package not in MODEL_CLASSES:
+            raise ValueError(
+                f"Cannot tell which algorithm saved {path} (policy module {policy_module!r}); "
+                "pass controller_class."
+            )
+        import sb3_hgrn
+
+        controller_class = getattr(sb3_hgrn, MODEL_CLASSES[package])
+    return controller_class.load(path, device="cpu")
+
+
+def _resolve_controller(spec: Any, side: str, controller_class: type | None) -> Any:
+    """A scripted controller's name, or a model (loaded when ``spec`` is a path)."""
+    names = SCRIPTED_CONTROLLERS[side]
+    if spec is None:
+        return DEFAULT_CONTROLLERS[side]
+    if isinstance(spec, str) and spec in names:
+        return spec
+    if isinstance(spec, str | os.PathLike):
+        path = os.fspath(spec)
+        if not (os.path.exists(path) or os.path.exists(path + ".zip")):
+            raise ValueError(
+                f"{side}_controller must be one of {names}, a model or a saved model's path; "
+                f"{spec!r} is none of these."
+            )
+        return load_controller(path, controller_class)
+    if callable(getattr(spec, "predict", None)):
+        return spec
+    raise TypeError(
+        f"{side}_controller must be one of {names}, an object with predict() or a saved model's path, "
+        f"got {type(spec).__name__}."
+    )
+
+
+def _check_arguments(
+    map_size: int, max_cycles: int, learners: str, comm_range: float, max_neighbors: int
+) -> None:
+    """Raise ``ValueError`` for constructor arguments outside their valid ranges."""
+    if map_size < MIN_MAP_SIZE:
+        raise ValueError(f"map_size must be >= {MIN_MAP_SIZE} (one predator), got {map_size}.")
+    if max_cycles < 1:
+        raise ValueError(f"max_cycles must be >= 1, got {max_cycles}.")
+    if learners not in SIDES:
+        raise ValueError(f"learners must be one of {SIDES}, got {learners!r}.")
+    if not comm_range >= 0:
+        raise ValueError(f"comm_range must be >= 0, got {comm_range}.")
+    if max_neighbors < 1:
+        raise ValueError(f"max_neighbors must be >= 1, got {max_neighbors}.")
+
+
+def parallel_env(**kwargs: Any) -> PursuitEnv:
+    """Build a :class:`PursuitEnv` (PettingZoo-style module entry point)."""
+    return PursuitEnv(**kwargs)
