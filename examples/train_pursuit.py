@@ -9,9 +9,7 @@ The paper's map (25 predators against 50 prey, 45 x 45, 500-step episodes):
 import argparse
 import time
 
-import numpy as np
-
-from sb3_hgrn import SoftHGRN, evaluate_graph_policy, make_graph_vec_env
+from sb3_hgrn import RandomGraphPolicy, SoftHGRN, evaluate_graph_policy, make_graph_vec_env
 from sb3_hgrn.envs import pursuit_v0
 
 parser = argparse.ArgumentParser()
@@ -36,13 +34,8 @@ eval_env = make_graph_vec_env(
 print(f"{env.n_agents} predators per copy, {args.prey} prey, map {args.map_size} x {args.map_size}")
 
 
-class RandomPolicy:
-    def predict(self, obs, state=None, episode_start=None, deterministic=False):
-        return np.random.randint(0, 13, size=len(obs["obs"])), state
-
-
 random_return, random_std = evaluate_graph_policy(
-    RandomPolicy(), eval_env, n_eval_episodes=args.eval_episodes
+    RandomGraphPolicy(eval_env, seed=args.seed), eval_env, n_eval_episodes=args.eval_episodes
 )
 print(f"random predators: team return {random_return:.1f} +/- {random_std:.1f}")
 

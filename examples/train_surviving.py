@@ -9,9 +9,7 @@ The paper's map (100 agents, 32 x 32, 500-step episodes):
 import argparse
 import time
 
-import numpy as np
-
-from sb3_hgrn import SoftHGRN, evaluate_graph_policy, make_graph_vec_env
+from sb3_hgrn import RandomGraphPolicy, SoftHGRN, evaluate_graph_policy, make_graph_vec_env
 
 parser = argparse.ArgumentParser()
 parser.add_argument("--agents", type=int, default=20)
@@ -34,13 +32,8 @@ eval_env = make_graph_vec_env(
 )
 
 
-class RandomPolicy:
-    def predict(self, obs, state=None, episode_start=None, deterministic=False):
-        return np.random.randint(0, 5, size=len(obs["obs"])), state
-
-
 random_return, random_std = evaluate_graph_policy(
-    RandomPolicy(), eval_env, n_eval_episodes=args.eval_episodes
+    RandomGraphPolicy(eval_env, seed=args.seed), eval_env, n_eval_episodes=args.eval_episodes
 )
 print(f"random policy: team return {random_return:.1f} +/- {random_std:.1f}")
 

@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from sb3_hgrn import SoftHGRN, evaluate_graph_policy, make_graph_vec_env
+from sb3_hgrn import RandomGraphPolicy, SoftHGRN, evaluate_graph_policy, make_graph_vec_env
 from sb3_hgrn.envs import uav_mbs_v0
 
 parser = argparse.ArgumentParser()
@@ -39,18 +39,12 @@ eval_env = make_graph_vec_env(
 print(f"{env.n_agents} UAVs and {args.users} users per copy, {args.observation} observations")
 
 
-class RandomPolicy:
-    def predict(self, obs, state=None, episode_start=None, deterministic=False):
-        return np.random.randint(0, 17, size=len(obs["obs"])), state
-
-
 class HoverPolicy:
     def predict(self, obs, state=None, episode_start=None, deterministic=False):
         return np.full(len(obs["obs"]), 16), state
 
 
-np.random.seed(args.seed)  # the random policy's actions
-for name, policy in (("random", RandomPolicy()), ("hover", HoverPolicy())):
+for name, policy in (("random", RandomGraphPolicy(eval_env, seed=args.seed)), ("hover", HoverPolicy())):
     mean_return, std_return = evaluate_graph_policy(policy, eval_env, n_eval_episodes=args.eval_episodes)
     print(f"{name + ' policy:':15s}team return {mean_return:.1f} +/- {std_return:.1f}")
 

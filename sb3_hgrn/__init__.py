@@ -1,6 +1,6 @@
 """sb3_hgrn: graph-recurrent many-agent reinforcement learning for Stable-Baselines3."""
 
-from sb3_hgrn.common.evaluation import GraphEvalCallback, evaluate_graph_policy
+from sb3_hgrn.common.evaluation import GraphEvalCallback, RandomGraphPolicy, evaluate_graph_policy
 from sb3_hgrn.common.vec_env import GraphVecEnv, make_graph_vec_env
 from sb3_hgrn.sac_hgrn import SACHGRN
 from sb3_hgrn.soft_hgrn import SoftHGRN
@@ -10,6 +10,7 @@ __version__ = "0.1.0"
 __all__ = [
     "GraphEvalCallback",
     "GraphVecEnv",
+    "RandomGraphPolicy",
     "SACHGRN",
     "SoftHGRN",
     "__version__",

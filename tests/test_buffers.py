@@ -90,3 +90,22 @@ def test_empty_buffer_and_bad_slot_count():
         make_buffer().sample(4)
     with pytest.raises(ValueError, match="multiple"):
         GraphReplayBuffer(100, make_buffer().observation_space, gym.spaces.Discrete(2), n_envs=5, n_agents=3)
+
+
+def test_warns_when_the_full_buffer_would_not_fit_in_memory():
+    from sb3_hgrn.common.buffers import available_memory
+
+    available = available_memory()
+    if available is None:
+        pytest.skip("no /proc/meminfo on this system")
+    space = gym.spaces.Dict(
+        {
+            "obs": gym.spaces.Box(0.0, 1.0, shape=(1024,)),
+            "neighbors": gym.spaces.Box(-1, 10, shape=(4,), dtype=np.int32),
+        }
+    )
+    rows_needed = available // (2 * 1024 * 4 * 2) + 8  # obs and next obs of 2 agents, float32
+    with pytest.warns(UserWarning, match="lower buffer_size"):
+        GraphReplayBuffer(
+            int(rows_needed * 2), space, gym.spaces.Discrete(3), device="cpu", n_envs=2, n_agents=2
+        )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from typing import NamedTuple
 
 import numpy as np
@@ -31,6 +32,18 @@ def smallest_index_dtype(n_agents: int) -> np.dtype:
         if n_agents - 1 <= np.iinfo(dtype).max:
             return np.dtype(dtype)
     return np.dtype(np.int64)
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to new allocations (Linux ``MemAvailable``), or None if unknown."""
+    try:
+        with open("/proc/meminfo") as meminfo:
+            for line in meminfo:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        return None
+    return None
 
 
 class GraphReplayBuffer(BaseBuffer):
@@ -80,15 +93,23 @@ class GraphReplayBuffer(BaseBuffer):
         n_neighbors = observation_space["neighbors"].shape[0]
         action_dtype = np.uint8 if action_space.n <= 256 else np.int64
         self.observations = np.zeros((*rows, *obs_space.shape), dtype=obs_space.dtype)
-        self.next_observations = np.zeros_like(self.observations)
+        # np.zeros maps untouched pages lazily (zeros_like would write every byte up front)
+        self.next_observations = np.zeros(self.observations.shape, dtype=obs_space.dtype)
         self.neighbors = np.zeros((*rows, n_neighbors), dtype=index_dtype)
-        self.next_neighbors = np.zeros_like(self.neighbors)
+        self.next_neighbors = np.zeros(self.neighbors.shape, dtype=index_dtype)
         self.actions = np.zeros(rows, dtype=action_dtype)
         self.rewards = np.zeros(rows, dtype=np.float32)
         self.terminated = np.zeros(rows, dtype=bool)
         self.hidden = np.zeros((*rows, state_dim), dtype=hidden_dtype)
         self.episode_starts = np.zeros(rows[:2], dtype=bool)
         self.groups = np.zeros(rows, dtype=np.int8) if "group" in observation_space.spaces else None
+        available = available_memory()
+        if available is not None and self.nbytes > available:
+            warnings.warn(
+                f"The replay buffer needs {self.nbytes / 2**30:.1f} GiB once full but only "
+                f"{available / 2**30:.1f} GiB of memory are available; lower buffer_size.",
+                stacklevel=2,
+            )
 
     @property
     def nbytes(self) -> int:

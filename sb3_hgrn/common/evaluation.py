@@ -13,6 +13,31 @@ from stable_baselines3.common.vec_env import VecEnv
 from sb3_hgrn.common.off_policy import check_graph_env
 
 
+class RandomGraphPolicy:
+    """Uniformly random actions for every slot of a graph VecEnv, within each agent's own group's
+    actions (the baseline the examples and benchmarks compare with).
+
+    :param env: the graph VecEnv it acts in.
+    :param seed: seed of its own random generator.
+    """
+
+    def __init__(self, env: VecEnv, seed: int | None = None):
+        self.n_actions = int(env.action_space.n)
+        self.rng = np.random.default_rng(seed)
+
+    def predict(
+        self,
+        observation: dict[str, np.ndarray],
+        state: Any = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = False,
+    ) -> tuple[np.ndarray, Any]:
+        """Random actions ``(n_slots,)`` (the same signature as a model's ``predict``)."""
+        mask = observation.get("action_mask")
+        high = self.n_actions if mask is None else mask.sum(axis=1)
+        return self.rng.integers(0, high, size=len(observation["obs"])), state
+
+
 def evaluate_graph_policy(
     model: BaseAlgorithm,
     env: VecEnv,
@@ -26,7 +51,8 @@ def evaluate_graph_policy(
     over all its steps. Episodes are spread evenly over the copies, every copy keeps stepping until
     all are counted, and the recurrent state is reset exactly at each copy's episode starts.
 
-    :param model: a trained graph model (``predict(obs, state, episode_start, deterministic)``).
+    :param model: a trained graph model, or anything with its
+        ``predict(obs, state, episode_start, deterministic)`` (e.g. :class:`RandomGraphPolicy`).
     :param env: a graph VecEnv (:func:`sb3_hgrn.make_graph_vec_env`); it is reset first.
     :param n_eval_episodes: number of team episodes.
     :param deterministic: greedy actions instead of sampled ones.
