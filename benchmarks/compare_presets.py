@@ -16,7 +16,7 @@ import time
 import torch as th
 
 from sb3_hgrn import evaluate_graph_policy, make_graph_vec_env
-from sb3_hgrn.presets import PRESETS, make_model
+from sb3_hgrn.presets import PRESETS, TABLE1, make_model
 
 
 def main() -> None:
@@ -29,7 +29,7 @@ def main() -> None:
     parser.add_argument("--timesteps", type=int, default=2_000_000, help="agent-steps per preset")
     parser.add_argument("--eval-episodes", type=int, default=4)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--presets", nargs="+", default=list(PRESETS), choices=list(PRESETS))
+    parser.add_argument("--presets", nargs="+", default=list(TABLE1), choices=list(PRESETS))
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     args = parser.parse_args()
     th.set_num_threads(args.threads)

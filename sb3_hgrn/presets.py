@@ -18,12 +18,14 @@ from sb3_hgrn.soft_hgrn import SoftHGRN
 
 NO_COMMUNICATION = {"communication": "none"}
 NO_MEMORY = {"recurrent": False}
+OWN_GROUP = {"communication": "gat"}  # homogeneous attention: each agent group attends within itself
 
 PRESETS: dict[str, tuple[type[GraphOffPolicyAlgorithm], dict[str, Any]]] = {
     # baselines
     "dqn": (SoftHGRN, dict(stochastic=False, policy_kwargs={**NO_COMMUNICATION, **NO_MEMORY})),
     "commnet": (SoftHGRN, dict(stochastic=False, policy_kwargs={"communication": "mean", **NO_MEMORY})),
-    "dgn": (SoftHGRN, dict(stochastic=False, policy_kwargs=dict(NO_MEMORY))),
+    "dgn": (SoftHGRN, dict(stochastic=False, policy_kwargs={**OWN_GROUP, **NO_MEMORY})),
+    "hgn": (SoftHGRN, dict(stochastic=False, policy_kwargs=dict(NO_MEMORY))),
     "maac": (
         SACHGRN,
         dict(
@@ -40,7 +42,17 @@ PRESETS: dict[str, tuple[type[GraphOffPolicyAlgorithm], dict[str, Any]]] = {
     "sac_hgrn-G": (SACHGRN, dict(policy_kwargs=dict(NO_COMMUNICATION))),
     "sac_hgrn-R": (SACHGRN, dict(policy_kwargs=dict(NO_MEMORY))),
     "sac_hgrn-S": (SACHGRN, dict(stochastic=False)),
+    # homogeneous-attention twins of the paper's methods (they differ only with several agent groups)
+    "soft_dgrn": (SoftHGRN, dict(policy_kwargs=dict(OWN_GROUP))),
+    "sac_dgrn": (SACHGRN, dict(policy_kwargs=dict(OWN_GROUP))),
 }
+
+TABLE1 = (
+    "dqn", "commnet", "maac", "dgn",
+    "soft_hgrn", "soft_hgrn-G", "soft_hgrn-R", "soft_hgrn-S",
+    "sac_hgrn", "sac_hgrn-G", "sac_hgrn-R", "sac_hgrn-S",
+)  # fmt: skip
+"""The rows of the paper's Table 1, in its order."""
 
 PAPER_SCHEDULE: dict[str, Any] = dict(
     learning_rate=1e-3,

@@ -84,3 +84,15 @@ def test_temperature_moves_toward_the_target_on_a_controlled_batch(algorithm):
         after = policy.temperature.alpha.item()
         assert (after - before) * direction > 0
         assert abs(after - before) == pytest.approx(0.01 * before, rel=1e-4)  # the 1 % clip
+
+
+def test_homogeneous_twins_attend_within_their_own_group_on_ctc():
+    env = make_graph_vec_env(
+        "ctc_v0", env_kwargs=dict(n_hunters=3, n_red_banks=2, n_blue_banks=2, map_size=12, max_cycles=10)
+    )
+    for name, across_groups in (("dgn", False), ("hgn", True), ("soft_dgrn", False), ("soft_hgrn", True)):
+        model = make_model(name, env, policy_kwargs=dict(hidden_dim=16))
+        assert model.policy.q_net.comm1.across_groups is across_groups
+        assert len(model.policy.q_net.head.members) == 3
+    sac = make_model("sac_dgrn", env, policy_kwargs=dict(hidden_dim=16))
+    assert not sac.policy.actor.comm1.across_groups and not sac.policy.critics[0].comm2.across_groups
