@@ -10,7 +10,8 @@ graph VecEnv, beside the original code's figure on a 2-core CPU where one is kno
 from __future__ import annotations
 
 import argparse
-import time
+
+from throughput import best_rate  # benchmarks/throughput.py, beside this script
 
 from sb3_hgrn import RandomGraphPolicy, make_graph_vec_env
 from sb3_hgrn.common.vec_env import as_graph_env
@@ -24,16 +25,6 @@ SETTINGS = {
     "Pursuit, 25 predators, random prey": ("pursuit_v0", {"prey_controller": "random"}, "-"),
     "CTC, 20 hunters + 10 + 10 banks": ("ctc_v0", {}, "~370"),
 }
-
-
-def best_rate(run, count: int, repeats: int = 3) -> float:
-    """Highest ``count / seconds`` over ``repeats`` calls of ``run()``."""
-    best = float("inf")
-    for _ in range(repeats):
-        start = time.perf_counter()
-        run()
-        best = min(best, time.perf_counter() - start)
-    return count / best
 
 
 def rates(name: str, env_kwargs: dict, steps: int) -> tuple[float, float]:

@@ -2,6 +2,7 @@
 
 import math
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
@@ -137,3 +138,20 @@ def test_model_and_env_with_other_groups_do_not_mix(tmp_path):
         model.set_env(make_graph_vec_env("ctc_v0", env_kwargs=CTC_SMALL))
     with pytest.raises(ValueError, match="spaces|groups"):
         model.set_env(make_graph_vec_env(lambda: NeighborBitEnv(4)))
+
+
+def test_groups_that_do_not_fit_the_env_are_rejected():
+    class BadIds(SignalReaderEnv):
+        def __init__(self):
+            super().__init__(n_pairs=2)
+            self.group_ids = [0, 1, 2, 1]
+
+    class TooManyActions(SignalReaderEnv):
+        def __init__(self):
+            super().__init__(n_pairs=2)
+            self.shared_action_space = gym.spaces.Discrete(2)
+
+    with pytest.raises(ValueError, match="group_ids"):
+        make_graph_vec_env(BadIds)
+    with pytest.raises(ValueError, match="shared spaces"):
+        make_graph_vec_env(TooManyActions)

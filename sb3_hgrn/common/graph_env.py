@@ -15,6 +15,8 @@ import gymnasium as gym
 import numpy as np
 from pettingzoo import ParallelEnv
 
+from sb3_hgrn.common.rendering import PygameWindow
+
 
 class AgentGroup(NamedTuple):
     """A group of agents sharing spaces (and, in the models, parameters)."""
@@ -22,6 +24,13 @@ class AgentGroup(NamedTuple):
     name: str
     observation_space: gym.spaces.Box  # 1-D
     action_space: gym.spaces.Discrete
+
+
+def binary_table(n_values: int, n_bits: int, dtype: np.dtype = np.int8) -> np.ndarray:
+    """``(n_values, n_bits)``: row ``v`` is ``v`` in binary, most significant bit first (the
+    position and index codes of the envs' observations)."""
+    shifts = np.arange(n_bits - 1, -1, -1)
+    return ((np.arange(n_values)[:, None] >> shifts) & 1).astype(dtype)
 
 
 def padded_observation_space(groups: Sequence[AgentGroup]) -> gym.spaces.Box:
@@ -57,6 +66,8 @@ class GraphParallelEnv(ParallelEnv):
     shared_observation_space: gym.spaces.Box
     shared_action_space: gym.spaces.Discrete
     max_neighbors: int
+    render_mode: str | None = None
+    _window: PygameWindow | None = None
 
     # --- array API, implemented by subclasses -------------------------------------------------
     def reset_arrays(self, seed: int | None = None, options: dict | None = None) -> np.ndarray:
@@ -80,6 +91,31 @@ class GraphParallelEnv(ParallelEnv):
         Row ``i`` starts with ``i`` itself, then its neighbours; unused entries are ``-1``.
         """
         raise NotImplementedError
+
+    def _draw(self) -> np.ndarray:
+        """The current state as an ``(height, width, 3)`` uint8 image (subclasses that render)."""
+        raise NotImplementedError
+
+    # --- rendering --------------------------------------------------------------------------
+    def render(self) -> np.ndarray | None:
+        """Draw the current state: ``"rgb_array"`` returns the image ``(height, width, 3)`` uint8,
+        ``"human"`` shows it in a pygame window (see the subclass's ``_draw`` for what it shows)."""
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' or 'human'.")
+            return None
+        image = self._draw()
+        if self.render_mode == "rgb_array":
+            return image
+        if self._window is None:
+            self._window = PygameWindow(self.metadata["name"], self.metadata.get("render_fps", 10))
+        self._window.show(image)
+        return None
+
+    def close(self) -> None:
+        """Close the pygame window if one was opened."""
+        if self._window is not None:
+            self._window.close()
+            self._window = None
 
     # --- groups ------------------------------------------------------------------------------
     @property

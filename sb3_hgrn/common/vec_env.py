@@ -94,6 +94,25 @@ class ParallelEnvAdapter(GraphParallelEnv):
         self.env.close()
 
 
+def _check_groups(env: GraphParallelEnv) -> None:
+    """Raise an error naming the problem unless ``env``'s agent groups fit its shared spaces."""
+    if env.group_ids.shape != (env.n_agents,) or not set(env.group_ids.tolist()) <= set(
+        range(len(env.groups))
+    ):
+        raise ValueError(
+            f"group_ids must hold one group id in 0..{len(env.groups) - 1} per agent ({env.n_agents}), "
+            f"got shape {env.group_ids.shape}."
+        )
+    width = env.shared_observation_space.shape[0]
+    for group in env.groups:
+        if not isinstance(group.action_space, gym.spaces.Discrete):
+            raise TypeError(f"Graph envs need a Discrete action space, got {group.action_space}.")
+        if group.action_space.n > env.shared_action_space.n or group.observation_space.shape[0] > width:
+            raise ValueError(
+                f"Group {group.name!r} has more actions or observation values than the env's shared spaces."
+            )
+
+
 def as_graph_env(env: Any) -> GraphParallelEnv:
     """Return ``env`` with the array API, or raise a ``TypeError`` naming what is wrong with it."""
     if isinstance(env, GraphParallelEnv):
@@ -142,9 +161,7 @@ class GraphVecEnv(VecEnv):
         if not isinstance(obs_space, gym.spaces.Box) or len(obs_space.shape) != 1:
             raise TypeError(f"Agent observations must be a 1-D Box space, got {obs_space}.")
         self.groups = first.groups
-        for group in self.groups:
-            if not isinstance(group.action_space, gym.spaces.Discrete):
-                raise TypeError(f"Graph envs need a Discrete action space, got {group.action_space}.")
+        _check_groups(first)
         self.group_n_actions = tuple(int(group.action_space.n) for group in self.groups)
         spaces = {
             "obs": obs_space,

@@ -12,7 +12,7 @@ import gymnasium as gym
 import numpy as np
 
 from sb3_hgrn.common.graph import grid_neighbors
-from sb3_hgrn.common.graph_env import AgentGroup, GraphParallelEnv, padded_observation_space
+from sb3_hgrn.common.graph_env import AgentGroup, GraphParallelEnv, binary_table, padded_observation_space
 
 HUNTER, RED_BANK, BLUE_BANK = 0, 1, 2  # group ids
 GROUP_NAMES = ("hunter", "red_bank", "blue_bank")
@@ -63,12 +63,6 @@ def _window_slice(channel: int) -> slice:
     """Where window channel ``channel`` lies in an observation (after the position bits)."""
     start = 2 * COORDINATE_BITS + channel * WINDOW * WINDOW
     return slice(start, start + WINDOW * WINDOW)
-
-
-def _binary_table(n_values: int, n_bits: int) -> np.ndarray:
-    """``(n_values, n_bits)`` int8: row ``v`` is ``v`` in binary, most significant bit first."""
-    shifts = np.arange(n_bits - 1, -1, -1)
-    return ((np.arange(n_values)[:, None] >> shifts) & 1).astype(np.int8)
 
 
 class TreasureCollectionEnv(GraphParallelEnv):
@@ -252,8 +246,6 @@ class TreasureCollectionEnv(GraphParallelEnv):
         self._steps = 0
         self._episode_running = False
         self._neighbor_cache: np.ndarray | None = None
-        self._window: Any = None
-        self._clock: Any = None
 
     # --- construction helpers -------------------------------------------------------------------
     def _build_tables(self) -> None:
@@ -273,7 +265,7 @@ class TreasureCollectionEnv(GraphParallelEnv):
 
         rows, columns = np.divmod(np.arange(n_cells), size)
         self._coordinates_of_cell = np.stack([rows, columns], axis=1)
-        binary = _binary_table(size, COORDINATE_BITS)
+        binary = binary_table(size, COORDINATE_BITS)
         self._layers = np.zeros((N_LAYERS, n_cells), dtype=np.int8)
         self._layers[X_BITS:] = np.concatenate([binary[rows], binary[columns]], axis=1).T
         self._flat_layers = self._layers.reshape(-1)
@@ -588,24 +580,13 @@ class TreasureCollectionEnv(GraphParallelEnv):
         return given.copy() if given is not None else self._random_interior_cells(count)
 
     # --- rendering ------------------------------------------------------------------------------
-    def render(self) -> np.ndarray | None:
-        """Draw the map: ``"rgb_array"`` returns it, ``"human"`` shows it in a pygame window.
+    def _draw(self) -> np.ndarray:
+        """The current state as an image.
 
         The image is ``(8 * map_size, 8 * map_size, 3)`` uint8: walls grey, red treasure tints a cell
         red and blue treasure blue, resource points are dark red / dark blue cell outlines, banks red /
         blue squares and hunters small green squares on top; ``x`` runs downwards.
         """
-        if self.render_mode is None:
-            gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' or 'human'.")
-            return None
-        image = self._draw()
-        if self.render_mode == "rgb_array":
-            return image
-        self._show(image)
-        return None
-
-    def _draw(self) -> np.ndarray:
-        """The current state as an ``(8 * map_size, 8 * map_size, 3)`` uint8 image."""
         red, blue = np.maximum(self._treasure, 0).astype(np.int64)
         tint = red[:, None] * np.array([0, 40, 40]) + blue[:, None] * np.array([40, 40, 0])
         cell_colors = np.clip(255 - tint, 0, 255).astype(np.uint8)
@@ -634,30 +615,6 @@ class TreasureCollectionEnv(GraphParallelEnv):
             marked[flat_cells] = True
             image[np.kron(marked.reshape(self.map_size, self.map_size), shape).astype(bool)] = color
         return image
-
-    def _show(self, image: np.ndarray) -> None:
-        """Display ``image`` ``(H, W, 3)`` in a pygame window (``x`` runs downwards)."""
-        import pygame
-
-        if self._window is None:
-            pygame.init()
-            self._window = pygame.display.set_mode((image.shape[1], image.shape[0]))
-            pygame.display.set_caption("ctc_v0")
-            self._clock = pygame.time.Clock()
-        pygame.event.pump()
-        self._window.blit(pygame.surfarray.make_surface(image.swapaxes(0, 1)), (0, 0))
-        pygame.display.flip()
-        self._clock.tick(self.metadata["render_fps"])
-
-    def close(self) -> None:
-        """Close the pygame window if one was opened."""
-        if self._window is not None:
-            import pygame
-
-            pygame.display.quit()
-            pygame.quit()
-            self._window = None
-            self._clock = None
 
 
 # --- argument checks ----------------------------------------------------------------------------

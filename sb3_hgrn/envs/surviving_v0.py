@@ -12,7 +12,7 @@ import gymnasium as gym
 import numpy as np
 
 from sb3_hgrn.common.graph import grid_neighbors
-from sb3_hgrn.common.graph_env import GraphParallelEnv
+from sb3_hgrn.common.graph_env import GraphParallelEnv, binary_table
 
 N_ACTIONS = 5
 EAT = 4
@@ -32,12 +32,6 @@ MAX_ID_BITS = 32
 _WALL_RGB = (128, 128, 128)
 _AGENT_RGB = (220, 30, 30)
 _RESOURCE_RGB = (40, 90, 230)
-
-
-def _binary_table(n_values: int, n_bits: int) -> np.ndarray:
-    """``(n_values, n_bits)`` int8: row ``v`` is ``v`` in binary, most significant bit first."""
-    shifts = np.arange(n_bits - 1, -1, -1)
-    return ((np.arange(n_values)[:, None] >> shifts) & 1).astype(np.int8)
 
 
 class SurvivingEnv(GraphParallelEnv):
@@ -137,8 +131,6 @@ class SurvivingEnv(GraphParallelEnv):
         self._steps = 0
         self._episode_running = False
         self._neighbor_cache: np.ndarray | None = None
-        self._window: Any = None
-        self._clock: Any = None
 
     # --- construction helpers -------------------------------------------------------------------
     def _build_tables(self) -> None:
@@ -158,7 +150,7 @@ class SurvivingEnv(GraphParallelEnv):
 
         rows, columns = np.divmod(np.arange(n_cells), size)
         self._coordinates_of_cell = np.stack([rows, columns], axis=1)
-        binary = _binary_table(size, coordinate_bits)
+        binary = binary_table(size, coordinate_bits)
         self._layers = np.zeros((2 + 2 * coordinate_bits, n_cells), dtype=np.int8)
         self._layers[2:] = np.concatenate([binary[rows], binary[columns]], axis=1).T
         self._food = self._layers[0]
@@ -171,7 +163,7 @@ class SurvivingEnv(GraphParallelEnv):
         self._map_window_slice = slice(2 * coordinate_bits, 2 * coordinate_bits + window.size)
         self.obs_dim = self._layer_offsets.size + self.id_bits + 1
         self._observation_template = np.zeros((self.n_agents, self.obs_dim), dtype=np.int8)
-        self._observation_template[:, self._layer_offsets.size : -1] = _binary_table(
+        self._observation_template[:, self._layer_offsets.size : -1] = binary_table(
             self.n_agents, self.id_bits
         )
 
@@ -354,23 +346,12 @@ class SurvivingEnv(GraphParallelEnv):
         return given.copy() if given is not None else self._random_interior_cells(count)
 
     # --- rendering ------------------------------------------------------------------------------
-    def render(self) -> np.ndarray | None:
-        """Draw the map: ``"rgb_array"`` returns it, ``"human"`` shows it in a pygame window.
+    def _draw(self) -> np.ndarray:
+        """The current state as an image.
 
         The image is ``(8 * map_size, 8 * map_size, 3)`` uint8: walls grey, food in shades of green,
         resource points blue, agents red; ``x`` runs downwards.
         """
-        if self.render_mode is None:
-            gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' or 'human'.")
-            return None
-        image = self._draw()
-        if self.render_mode == "rgb_array":
-            return image
-        self._show(image)
-        return None
-
-    def _draw(self) -> np.ndarray:
-        """The current state as an ``(8 * map_size, 8 * map_size, 3)`` uint8 image."""
         food_levels = np.arange(MAX_FOOD_PER_CELL + 1)
         food_colors = np.stack(
             [255 - 45 * food_levels, 255 - 25 * food_levels, 255 - 45 * food_levels], axis=1
@@ -390,30 +371,6 @@ class SurvivingEnv(GraphParallelEnv):
             marked[flat_cells] = True
             image[np.kron(marked.reshape(self.map_size, self.map_size), inner).astype(bool)] = color
         return image
-
-    def _show(self, image: np.ndarray) -> None:
-        """Display ``image`` ``(H, W, 3)`` in a pygame window (``x`` runs downwards)."""
-        import pygame
-
-        if self._window is None:
-            pygame.init()
-            self._window = pygame.display.set_mode((image.shape[1], image.shape[0]))
-            pygame.display.set_caption("surviving_v0")
-            self._clock = pygame.time.Clock()
-        pygame.event.pump()
-        self._window.blit(pygame.surfarray.make_surface(image.swapaxes(0, 1)), (0, 0))
-        pygame.display.flip()
-        self._clock.tick(self.metadata["render_fps"])
-
-    def close(self) -> None:
-        """Close the pygame window if one was opened."""
-        if self._window is not None:
-            import pygame
-
-            pygame.display.quit()
-            pygame.quit()
-            self._window = None
-            self._clock = None
 
 
 # --- argument checks ----------------------------------------------------------------------------

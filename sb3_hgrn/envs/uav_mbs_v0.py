@@ -12,7 +12,7 @@ import gymnasium as gym
 import numpy as np
 
 from sb3_hgrn.common.graph import grid_neighbors
-from sb3_hgrn.common.graph_env import GraphParallelEnv
+from sb3_hgrn.common.graph_env import GraphParallelEnv, binary_table
 
 # Space and discretisation: positions in [0, 1]^2 map to cells int(p * 200 + 13), clipped to [13, 212],
 # on a 226 x 226 raster whose 13-cell margin is obstacle.
@@ -57,12 +57,6 @@ _USER_RGB = (40, 90, 230)
 _COVERED_USER_RGB = (30, 160, 60)
 _UAV_RGB = (220, 30, 30)
 _COVERAGE_RGB = (245, 170, 170)
-
-
-def _binary_table(n_values: int, n_bits: int) -> np.ndarray:
-    """``(n_values, n_bits)`` float32: row ``v`` is ``v`` in binary, most significant bit first."""
-    shifts = np.arange(n_bits - 1, -1, -1)
-    return ((np.arange(n_values)[:, None] >> shifts) & 1).astype(np.float32)
 
 
 def view_offsets() -> np.ndarray:
@@ -233,8 +227,6 @@ class UAVMBSEnv(GraphParallelEnv):
         self._steps = 0
         self._episode_running = False
         self._neighbor_cache: np.ndarray | None = None
-        self._window: Any = None
-        self._clock: Any = None
 
     # --- construction helpers -------------------------------------------------------------------
     def _build_tables(self) -> None:
@@ -260,7 +252,7 @@ class UAVMBSEnv(GraphParallelEnv):
         flat_offsets = offsets[:, 0] * RASTER_SIZE + offsets[:, 1]
         self._gather_offsets = (np.arange(3)[:, None] * n_cells + flat_offsets[None, :]).ravel()
         self._gather_indices = np.empty((self.n_agents, self._gather_offsets.size), dtype=np.int64)
-        self._coordinate_bits = _binary_table(RASTER_SIZE, COORDINATE_BITS)
+        self._coordinate_bits = binary_table(RASTER_SIZE, COORDINATE_BITS, np.float32)
 
         maps_start = 2 * COORDINATE_BITS
         self._maps_slice = slice(maps_start, maps_start + self._gather_offsets.size)
@@ -270,7 +262,9 @@ class UAVMBSEnv(GraphParallelEnv):
         self.obs_dim = raster_dim if self.observation_mode == "raster" else compact_dim
         self._observation_template = np.zeros((self.n_agents, self.obs_dim), dtype=np.float32)
         if self.observation_mode == "raster":
-            self._observation_template[:, self._velocity_slice.stop :] = _binary_table(self.n_agents, ID_BITS)
+            self._observation_template[:, self._velocity_slice.stop :] = binary_table(
+                self.n_agents, ID_BITS, np.float32
+            )
 
     def _observation_box(self) -> gym.spaces.Box:
         """Bounds of each observation entry, in the layouts of the class docstring."""
@@ -524,24 +518,13 @@ class UAVMBSEnv(GraphParallelEnv):
         )
 
     # --- rendering ------------------------------------------------------------------------------
-    def render(self) -> np.ndarray | None:
-        """Draw the state: ``"rgb_array"`` returns it, ``"human"`` shows it in a pygame window.
+    def _draw(self) -> np.ndarray:
+        """The current state as an image.
 
         The image is ``(452, 452, 3)`` uint8, 2 pixels per raster cell, ``x`` to the right and ``y``
         upwards: obstacle margin grey, coverage discs light red, users blue (green when covered), UAVs
         red.
         """
-        if self.render_mode is None:
-            gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' or 'human'.")
-            return None
-        image = self._draw()
-        if self.render_mode == "rgb_array":
-            return image
-        self._show(image)
-        return None
-
-    def _draw(self) -> np.ndarray:
-        """The current state as a ``(452, 452, 3)`` uint8 image (see :meth:`render`)."""
         size = RASTER_SIZE * PIXELS_PER_CELL
         image = np.empty((size, size, 3), dtype=np.uint8)
         image[:] = _OBSTACLE_RGB
@@ -562,30 +545,6 @@ class UAVMBSEnv(GraphParallelEnv):
         paint(self._user_cells[covered], dot, _COVERED_USER_RGB)
         paint(self._cells, _disc_pixel_offsets(3.5), _UAV_RGB)
         return image
-
-    def _show(self, image: np.ndarray) -> None:
-        """Display ``image`` ``(H, W, 3)`` in a pygame window."""
-        import pygame
-
-        if self._window is None:
-            pygame.init()
-            self._window = pygame.display.set_mode((image.shape[1], image.shape[0]))
-            pygame.display.set_caption("uav_mbs_v0")
-            self._clock = pygame.time.Clock()
-        pygame.event.pump()
-        self._window.blit(pygame.surfarray.make_surface(image.swapaxes(0, 1)), (0, 0))
-        pygame.display.flip()
-        self._clock.tick(self.metadata["render_fps"])
-
-    def close(self) -> None:
-        """Close the pygame window if one was opened."""
-        if self._window is not None:
-            import pygame
-
-            pygame.display.quit()
-            pygame.quit()
-            self._window = None
-            self._clock = None
 
 
 def _cells_of(positions: np.ndarray) -> np.ndarray:
