@@ -416,3 +416,21 @@ def test_grouped_network_with_identical_copies_equals_the_plain_network():
         obs, torch.tensor([[[1, -1], [-1, -1], [3, -1], [2, -1]]]).repeat(2, 1, 1), hidden
     )
     torch.testing.assert_close(out_across, expected_across)
+
+
+def test_lists_longer_than_the_graph_match_the_dense_reference():
+    """A list with at least as many entries as the graph has agents (a tiny graph with a wide
+    neighbour list) is shortened to its valid entries; weights still map to the original entries."""
+    torch.manual_seed(0)
+    layer = GraphAttention(IN_DIM, OUT_DIM, 4, HEAD_DIM).double()
+    x = torch.randn(1, 3, IN_DIM, dtype=torch.double)
+    neighbors = torch.full((1, 3, 16), -1)
+    neighbors[0, 0, 9] = 2  # agent 0 lists agent 2 near the end of its list
+    neighbors[0, 1, [0, 15]] = torch.tensor([1, 0])  # agent 1 lists itself, then agent 0 last
+    expected, dense_weights = dense_attention(layer, x, dense_adjacency(neighbors))
+    out, weights = layer(x, neighbors, return_attention=True)
+    torch.testing.assert_close(out, expected)
+    assert weights.shape == (1, 3, 4, 17)
+    torch.testing.assert_close(weights[0, 0, :, 10], dense_weights[0, 0, :, 2])
+    torch.testing.assert_close(weights[0, 1, :, 16], dense_weights[0, 1, :, 0])
+    torch.testing.assert_close(weights.sum(-1), torch.ones(1, 3, 4, dtype=torch.double))

@@ -48,3 +48,16 @@ def test_model_trained_with_n_agents_runs_with_m_agents(tmp_path, name):
     actions, _ = loaded.predict(other.reset(), deterministic=True)
     assert actions.shape == (m_agents,)
     loaded.learn(2 * other.num_envs, reset_num_timesteps=False)  # and training goes on
+
+
+def test_set_env_moves_a_model_to_another_agent_count():
+    kwargs = dict(map_size=12, n_resources=2, max_cycles=20)
+    env = make_graph_vec_env("surviving_v0", n_envs=2, seed=0, env_kwargs=dict(n_agents=20, **kwargs))
+    model = SoftHGRN("GraphPolicy", env, learning_starts=40, policy_kwargs=dict(hidden_dim=16), seed=0)
+    model.learn(2 * env.num_envs)
+    other = make_graph_vec_env("surviving_v0", seed=1, env_kwargs=dict(n_agents=40, **kwargs))
+    model.set_env(other, force_reset=False)
+    assert model.n_envs == 40 and model.policy.n_agents == 40 and model.replay_buffer.n_agents == 40
+    before = model.num_timesteps
+    model.learn(3 * other.num_envs, reset_num_timesteps=False)
+    assert model.num_timesteps >= before + 3 * 40

@@ -30,17 +30,9 @@ MASKED_OUTPUT = -1e9
 """Output of the actions an agent's group does not have: softmax gives them probability 0."""
 
 
-def neighbor_columns(neighbors: Tensor, n_agents: int) -> tuple[Tensor, Tensor]:
-    """Turn neighbour lists into flat gather indices with the self-loop in column 0.
-
-    :param neighbors: ``(batch, n_agents, max_neighbors)`` integer agent indices, ``-1`` = no entry.
-    :param n_agents: number of agents per graph.
-    :return: ``columns`` of shape ``(max_neighbors + 1, batch * n_agents)`` with flat row indices
-        ``b * n_agents + j`` into a ``(batch * n_agents, ...)`` tensor (entries that are empty or
-        equal to the agent itself point at the agent and are masked), and ``mask`` of shape
-        ``(batch * n_agents, max_neighbors + 1)``, True for the entries that take part (column 0,
-        the agent itself, is always True).
-    """
+def check_neighbors(neighbors: Tensor, n_agents: int) -> None:
+    """Raise a ``ValueError`` unless ``neighbors`` is ``(batch, n_agents, K)`` integer indices in
+    ``[-1, n_agents - 1]``."""
     if neighbors.dim() != 3 or neighbors.shape[1] != n_agents:
         raise ValueError(
             f"neighbors must have shape (batch, {n_agents}, max_neighbors), got {tuple(neighbors.shape)}"
@@ -53,6 +45,20 @@ def neighbor_columns(neighbors: Tensor, n_agents: int) -> tuple[Tensor, Tensor]:
             raise ValueError(
                 f"neighbor indices must lie in [-1, {n_agents - 1}], got values in [{low}, {high}]"
             )
+
+
+def neighbor_columns(neighbors: Tensor, n_agents: int) -> tuple[Tensor, Tensor]:
+    """Turn checked neighbour lists (see :func:`check_neighbors`) into flat gather indices with the
+    self-loop in column 0.
+
+    :param neighbors: ``(batch, n_agents, max_neighbors)`` integer agent indices, ``-1`` = no entry.
+    :param n_agents: number of agents per graph.
+    :return: ``columns`` of shape ``(max_neighbors + 1, batch * n_agents)`` with flat row indices
+        ``b * n_agents + j`` into a ``(batch * n_agents, ...)`` tensor (entries that are empty or
+        equal to the agent itself point at the agent and are masked), and ``mask`` of shape
+        ``(batch * n_agents, max_neighbors + 1)``, True for the entries that take part (column 0,
+        the agent itself, is always True).
+    """
     batch = neighbors.shape[0]
     neighbors = neighbors.to(torch.long)
     own = torch.arange(n_agents, device=neighbors.device).view(1, n_agents, 1).expand(batch, n_agents, 1)
@@ -215,6 +221,11 @@ class GraphBatch:
     def __init__(self, neighbors: Tensor, groups: Tensor | None = None, n_groups: int = 1) -> None:
         self.batch, self.n_agents = neighbors.shape[:2]
         self.n_groups = n_groups
+        check_neighbors(neighbors, self.n_agents)
+        self.list_width = neighbors.shape[2]
+        self.kept_entries: Tensor | None = None
+        if self.list_width >= max(self.n_agents, 1):
+            neighbors, self.kept_entries = _compact_lists(neighbors, self.n_agents)
         self.columns, self.mask = neighbor_columns(neighbors, self.n_agents)
         self._patterns: dict[int, _Pattern] = {}
         self.group_rows: list[Tensor] | None = None
@@ -239,6 +250,16 @@ class GraphBatch:
         self.group_inverse = torch.argsort(torch.cat(self.group_rows))
         self.column_groups = flat[self.columns.t()]  # (rows, K + 1) group of every listed entry
 
+    def list_weights(self, weights: Tensor) -> Tensor:
+        """Attention weights ``(batch * n_agents, heads, K' + 1)`` over the (possibly compacted) lists,
+        laid out over the original lists ``(batch * n_agents, heads, list_width + 1)``."""
+        if self.kept_entries is None:
+            return weights
+        full = weights.new_zeros(*weights.shape[:2], self.list_width + 1)
+        full[..., 0] = weights[..., 0]
+        positions = (self.kept_entries.reshape(weights.shape[0], 1, -1) + 1).expand(-1, weights.shape[1], -1)
+        return full.scatter_(2, positions, weights[..., 1:])
+
     def pattern(self, heads: int) -> _Pattern:
         """CSR pattern of the attention with ``heads`` heads (built once per head count)."""
         if heads not in self._patterns:
@@ -253,6 +274,20 @@ class GraphBatch:
         if across_groups:
             return [self.mask & (self.column_groups == group) for group in range(self.n_groups)]
         return [self.mask & (self.column_groups == self.row_groups.unsqueeze(1))]
+
+
+def _compact_lists(neighbors: Tensor, n_agents: int) -> tuple[Tensor, Tensor]:
+    """Shorten lists with at least ``n_agents`` entries to ``n_agents - 1``, valid entries first.
+
+    No agent has more than ``n_agents - 1`` others, so only empty entries, entries naming the agent
+    itself and repeated entries can fall off (a repeated neighbour then counts fewer times). The
+    sparse attention needs this: it cannot hold more entries per row than the graph has agents.
+    :return: the shortened lists and the positions ``(batch, n_agents, n_agents - 1)`` they came from.
+    """
+    own = torch.arange(n_agents, device=neighbors.device).view(1, n_agents, 1)
+    invalid = ((neighbors < 0) | (neighbors == own)).to(torch.int8)
+    kept = torch.argsort(invalid, dim=2, stable=True)[..., : n_agents - 1]
+    return neighbors.gather(2, kept), kept
 
 
 def _as_graph(graph: GraphBatch | Tensor) -> GraphBatch:
@@ -361,7 +396,7 @@ class GraphAttention(nn.Module):
         mixed, weights = _NeighborAttention.apply(query, key, value, graph.pattern(self.n_heads), segments)
         out = F.relu(self.output(mixed.reshape(batch, n_agents, -1), graph=graph))
         if return_attention:
-            return out, weights.reshape(batch, n_agents, self.n_heads, -1)
+            return out, graph.list_weights(weights).reshape(batch, n_agents, self.n_heads, -1)
         return out
 
 

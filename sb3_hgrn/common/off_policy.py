@@ -13,7 +13,12 @@ from gymnasium import spaces
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, RolloutReturn, Schedule, TrainFreq
-from stable_baselines3.common.utils import LinearSchedule, safe_mean, should_collect_more_steps
+from stable_baselines3.common.utils import (
+    LinearSchedule,
+    check_for_correct_spaces,
+    safe_mean,
+    should_collect_more_steps,
+)
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_hgrn.common.buffers import GraphReplayBuffer
@@ -219,14 +224,18 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         )
 
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
-        """Attach another graph VecEnv (any number of copies or agents, the same spaces)."""
+        """Attach another graph VecEnv (any number of copies or agents, the same spaces); the env is
+        reset before training when its graphs differ in size."""
         env = check_graph_env(env)
         if env_action_counts(env) != self.policy.action_counts:
             raise ValueError(
                 f"The env's agent groups have {env_action_counts(env)} actions, the model's "
                 f"{self.policy.action_counts}."
             )
-        super().set_env(env, force_reset=force_reset)
+        check_for_correct_spaces(env, self.observation_space, self.action_space)
+        resized = env.num_envs != self.n_envs or env.n_agents != self.n_agents
+        self.n_envs = env.num_envs  # SB3 asserts an unchanged slot count; graphs may change size
+        super().set_env(env, force_reset=force_reset or resized)
         self.n_agents = env.n_agents
         self.policy.n_agents = env.n_agents
         buffer = self.replay_buffer
