@@ -1,0 +1,266 @@
+"""``sb3-hgrn`` / ``python -m sb3_hgrn``: train, evaluate and render runs, reproduce the paper's Table 1.
+
+Examples::
+
+    sb3-hgrn train --env surviving_v0 --preset soft_hgrn --budget cpu --seed 0
+    sb3-hgrn evaluate runs/surviving_v0/soft_hgrn/seed_0 --episodes 10 --epsilon 0.3
+    sb3-hgrn render runs/surviving_v0/soft_hgrn/seed_0 --out episode.gif
+    sb3-hgrn reproduce table1 --budget cpu --seeds 3 --jobs 2
+
+See docs/cli.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from sb3_hgrn.common.vec_env import REGISTERED_ENVS
+from sb3_hgrn.experiments.config import BUDGETS, ConfigError, parse_assignments
+from sb3_hgrn.presets import TABLE1
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(float(text)) if "e" in text.lower() else int(text.replace("_", ""))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+def _add_env_params(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--env-param",
+        nargs="+",
+        action="extend",
+        default=[],
+        metavar="KEY=VALUE",
+        help="env constructor argument over the config's env_kwargs (e.g. n_agents=20)",
+    )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser with its subcommands ``train``, ``evaluate``, ``render``, ``reproduce``."""
+    parser = argparse.ArgumentParser(
+        prog="sb3-hgrn",
+        description="Train, evaluate and render sb3_hgrn runs; reproduce the paper's Table 1 (docs/cli.md).",
+        epilog="examples:\n" + __doc__.split("Examples::\n\n")[1].split("\n\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    train = commands.add_parser("train", help="train one run into its own folder, then evaluate it")
+    train.add_argument("--env", required=True, help=f"one of {', '.join(REGISTERED_ENVS)}")
+    train.add_argument("--preset", required=True, help="a name of sb3_hgrn.presets.PRESETS (docs/presets.md)")
+    train.add_argument("--budget", default="cpu", help=f"config budget: {', '.join(BUDGETS)} (default cpu)")
+    train.add_argument("--seed", type=int, default=0)
+    train.add_argument(
+        "--timesteps", type=_positive_int, help="agent-steps of training (default: the budget's)"
+    )
+    train.add_argument(
+        "--folder", default="runs", help="root of run folders (<folder>/<env>/<preset>/seed_<seed>)"
+    )
+    train.add_argument(
+        "--param",
+        nargs="+",
+        action="extend",
+        default=[],
+        metavar="KEY=VALUE",
+        help="algorithm argument over the config (e.g. batch_size=64 policy_kwargs.hidden_dim=32)",
+    )
+    _add_env_params(train)
+    train.add_argument(
+        "--save-freq", type=_positive_int, help="save a checkpoint every this many agent-steps"
+    )
+    train.add_argument(
+        "--progress-bar", action="store_true", help="show a progress bar (needs tqdm and rich)"
+    )
+    train.add_argument("--verbose", type=int, default=1, help="0: quiet, 1: SB3's training logs")
+    train.add_argument(
+        "--log-interval", type=_positive_int, default=10, help="team episodes between log dumps"
+    )
+    train.add_argument("--threads", type=_positive_int, help="torch CPU threads")
+    train.add_argument("--device", default="auto", help="torch device (default auto)")
+    train.add_argument("--overwrite", action="store_true", help="redo a run whose folder holds eval.json")
+
+    evaluate = commands.add_parser("evaluate", help="team return of a saved run")
+    evaluate.add_argument("path", help="run folder, its model.zip or a checkpoint")
+    evaluate.add_argument("--episodes", type=_positive_int, default=10, help="team episodes (default 10)")
+    evaluate.add_argument("--deterministic", action="store_true", help="greedy actions")
+    evaluate.add_argument(
+        "--epsilon",
+        type=float,
+        default=0.0,
+        help="probability of a uniformly random valid action per agent (the original's evaluation: 0.3)",
+    )
+    evaluate.add_argument("--n-envs", type=_positive_int, help="env copies (default: the run's eval_n_envs)")
+    evaluate.add_argument("--seed", type=int, help="env seed (default: the run's seed + 1000)")
+    evaluate.add_argument("--env", help="env of a bare .zip outside a run folder")
+    evaluate.add_argument("--threads", type=_positive_int, help="torch CPU threads")
+    _add_env_params(evaluate)
+
+    render = commands.add_parser("render", help="write one episode of a saved run as a GIF")
+    render.add_argument("path", help="run folder, its model.zip or a checkpoint")
+    render.add_argument("--out", default="episode.gif", help="GIF file (default episode.gif)")
+    render.add_argument(
+        "--steps", type=_positive_int, help="stop after this many steps (default: whole episode)"
+    )
+    render.add_argument("--fps", type=float, default=10.0, help="frames per second (default 10)")
+    render.add_argument("--deterministic", action="store_true", help="greedy actions")
+    render.add_argument("--seed", type=int, help="env seed (default: the run's seed + 1000)")
+    render.add_argument("--env", help="env of a bare .zip outside a run folder")
+    _add_env_params(render)
+
+    reproduce = commands.add_parser("reproduce", help="reproduce a table of the paper")
+    reproduce.add_argument("table", choices=["table1"], help="table1: every Table 1 row on its three envs")
+    reproduce.add_argument(
+        "--budget", default="cpu", help=f"config budget: {', '.join(BUDGETS)} (default cpu)"
+    )
+    reproduce.add_argument("--seeds", type=_positive_int, default=3, help="seeds 0..N-1 (default 3)")
+    reproduce.add_argument("--folder", default="results", help="results folder (default results)")
+    reproduce.add_argument("--jobs", type=_positive_int, default=1, help="training processes at a time")
+    reproduce.add_argument(
+        "--threads", type=_positive_int, help="torch threads per process (default 1 if jobs > 1)"
+    )
+    reproduce.add_argument(
+        "--save-freq", type=_positive_int, help="checkpoint every this many agent-steps (killed runs resume)"
+    )
+    reproduce.add_argument(
+        "--presets", nargs="+", default=list(TABLE1), help="rows (default: all of Table 1)"
+    )
+    reproduce.add_argument(
+        "--envs",
+        nargs="+",
+        default=["uav_mbs_v0", "surviving_v0", "pursuit_v0"],
+        help="columns (default all three)",
+    )
+    return parser
+
+
+def _set_threads(threads: int | None) -> None:
+    if threads is not None:
+        import torch
+
+        torch.set_num_threads(threads)
+
+
+def _train(args: argparse.Namespace) -> int:
+    from sb3_hgrn.experiments.config import resolve_config
+    from sb3_hgrn.experiments.runs import run_folder, train_run
+
+    config = resolve_config(
+        args.env,
+        args.preset,
+        args.budget,
+        args.seed,
+        args.timesteps,
+        params=parse_assignments(args.param, "--param"),
+        env_params=parse_assignments(args.env_param, "--env-param"),
+    )
+    _set_threads(args.threads)
+    folder = run_folder(args.folder, config.env, config.preset, config.seed)
+    results = train_run(
+        config,
+        folder,
+        verbose=args.verbose,
+        progress_bar=args.progress_bar,
+        save_freq=args.save_freq,
+        device=args.device,
+        log_interval=args.log_interval,
+        overwrite=args.overwrite,
+    )
+    print(
+        f"{config.preset} on {config.env} (budget {config.budget}, seed {config.seed}): team return "
+        f"{results['mean']:.2f} +- {results['std']:.2f} over {results['n_episodes']} episodes after "
+        f"{results['agent_steps']} agent-steps ({results['wall_time_s']:.0f} s); run folder {folder}"
+    )
+    return 0
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from sb3_hgrn.experiments.runs import evaluate_run
+
+    if not 0.0 <= args.epsilon <= 1.0:
+        raise ConfigError(f"--epsilon must lie in [0, 1], got {args.epsilon}.")
+    _set_threads(args.threads)
+    results = evaluate_run(
+        args.path,
+        n_episodes=args.episodes,
+        deterministic=args.deterministic,
+        epsilon=args.epsilon,
+        env=args.env,
+        n_envs=args.n_envs,
+        seed=args.seed,
+        **parse_assignments(args.env_param, "--env-param"),
+    )
+    mode = "greedy" if args.deterministic else "sampled"
+    print(
+        f"team return {results['mean']:.2f} +- {results['std']:.2f} over {results['n_episodes']} episodes "
+        f"({mode} actions, epsilon {args.epsilon:g})"
+    )
+    return 0
+
+
+def _render(args: argparse.Namespace) -> int:
+    from sb3_hgrn.experiments.runs import render_run
+
+    if args.fps <= 0:
+        raise ConfigError(f"--fps must be positive, got {args.fps}.")
+    n_frames = render_run(
+        args.path,
+        args.out,
+        steps=args.steps,
+        fps=args.fps,
+        deterministic=args.deterministic,
+        env=args.env,
+        seed=args.seed,
+        **parse_assignments(args.env_param, "--env-param"),
+    )
+    print(f"wrote {args.out} ({n_frames} frames rendered)")
+    return 0
+
+
+def _reproduce(args: argparse.Namespace) -> int:
+    from sb3_hgrn.experiments.table1 import run_sweep
+
+    failed = run_sweep(
+        args.budget,
+        n_seeds=args.seeds,
+        folder=args.folder,
+        jobs=args.jobs,
+        presets=args.presets,
+        envs=args.envs,
+        threads=args.threads,
+        save_freq=args.save_freq,
+    )
+    if failed:
+        print(
+            f"{len(failed)} run(s) failed: " + ", ".join(f"{j.env}/{j.preset}/seed_{j.seed}" for j in failed)
+        )
+        return 1
+    return 0
+
+
+COMMANDS = {"train": _train, "evaluate": _evaluate, "render": _render, "reproduce": _reproduce}
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line ``argv`` (default ``sys.argv[1:]``); returns the exit status.
+
+    Bad input (unknown env, preset or budget, a malformed ``--param``) exits with status 2 and a
+    message naming the problem, as argparse does for its own errors.
+    """
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return COMMANDS[args.command](args)
+    except ConfigError as error:
+        parser.error(str(error))
+    return 2  # not reached: parser.error exits
+
+
+if __name__ == "__main__":
+    sys.exit(main())

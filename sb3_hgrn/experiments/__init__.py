@@ -1,0 +1,11 @@
+"""Experiment runner behind the ``sb3-hgrn`` command line: YAML configs, run folders, the Table 1 sweep.
+
+- :mod:`sb3_hgrn.experiments.config`: load ``sb3_hgrn/hyperparams/<env>.yml`` and resolve one run's
+  configuration (budget, preset overrides, ``--param`` / ``--env-param``).
+- :mod:`sb3_hgrn.experiments.runs`: train one run into its folder, evaluate and render saved runs.
+- :mod:`sb3_hgrn.experiments.table1`: the paper's Table 1 sweep, resumable, and its tables.
+"""
+
+from sb3_hgrn.experiments.config import ConfigError, RunConfig, load_hyperparams, resolve_config
+
+__all__ = ["ConfigError", "RunConfig", "load_hyperparams", "resolve_config"]

@@ -1,0 +1,73 @@
+"""Callbacks of the command-line runs: a Monitor-style CSV of team returns."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from typing import IO, Any
+
+import numpy as np
+from stable_baselines3.common.callbacks import BaseCallback
+
+TEAM_RETURNS_FILE = "team_returns.csv"
+
+
+class TeamMonitorCallback(BaseCallback):
+    """Write one ``r,l,t`` row per team episode of training, as SB3's ``Monitor`` does per episode.
+
+    The file starts with ``#{json metadata}`` (``t_start``, ``env_id``, ``n_agents``, ``n_copies``)
+    and the header ``r,l,t``: team return (all agents' rewards summed over the episode), length in
+    env steps, and seconds since ``t_start``. Rows come from the ``team_episode`` info that the graph
+    VecEnv puts in the slots of a copy whose episode ended. Every row is flushed at once.
+
+    :param path: the CSV file; with ``append=True`` an existing file is continued (resumed runs).
+    :param env_id: env name stored in the metadata line.
+    """
+
+    def __init__(self, path: str, env_id: str = "", append: bool = False, verbose: int = 0):
+        super().__init__(verbose=verbose)
+        self.path = path
+        self.env_id = env_id
+        self.append = append
+        self.t_start = time.time()
+        self.file: IO[str] | None = None
+        self.n_episodes = 0
+
+    def _init_callback(self) -> None:
+        os.makedirs(os.path.dirname(os.path.abspath(self.path)), exist_ok=True)
+        continuing = self.append and os.path.exists(self.path) and os.path.getsize(self.path) > 0
+        if continuing:
+            with open(self.path, encoding="utf-8") as file:
+                first = file.readline()
+            if first.startswith("#"):
+                self.t_start = float(json.loads(first[1:]).get("t_start", self.t_start))
+        self.file = open(self.path, "a" if continuing else "w", encoding="utf-8")  # noqa: SIM115
+        if not continuing:
+            metadata = {
+                "t_start": self.t_start,
+                "env_id": self.env_id,
+                "n_agents": int(self.training_env.n_agents),
+                "n_copies": int(self.training_env.num_envs // self.training_env.n_agents),
+            }
+            self.file.write(f"#{json.dumps(metadata)}\nr,l,t\n")
+            self.file.flush()
+
+    def _on_step(self) -> bool:
+        dones = np.asarray(self.locals["dones"], dtype=bool)
+        infos: list[dict[str, Any]] = self.locals["infos"]
+        n_agents = self.training_env.n_agents
+        for first_slot in np.flatnonzero(dones[::n_agents]) * n_agents:
+            team = infos[first_slot].get("team_episode")
+            if team is None or self.file is None:
+                continue
+            elapsed = round(time.time() - self.t_start, 6)
+            self.file.write(f"{round(float(team['r']), 6)},{int(team['l'])},{elapsed}\n")
+            self.file.flush()
+            self.n_episodes += 1
+        return True
+
+    def _on_training_end(self) -> None:
+        if self.file is not None:
+            self.file.close()
+            self.file = None

@@ -1,0 +1,235 @@
+"""RL-Zoo-style YAML configs: one file per env in ``sb3_hgrn/hyperparams``, with budgets and presets.
+
+A config file holds (all sections optional except ``budgets``)::
+
+    env_kwargs: {...}            # env constructor arguments shared by every budget
+    default: {...}               # algorithm keyword arguments for every preset
+    soft_hgrn: {...}             # ... for one preset only (any name of sb3_hgrn.presets.PRESETS)
+    budgets:
+      ci:                        # also cpu, paper
+        description: "..."       # the sizes in words (shown in the Table 1 header)
+        env_kwargs: {...}        # merged over the top-level env_kwargs
+        n_envs: 1                # env copies stepped together while training
+        eval_n_envs: 1           # env copies while evaluating (default: n_envs)
+        total_timesteps: 2000    # agent-steps of training
+        eval_episodes: 2         # team episodes of the final evaluation
+        eval_epsilons: [0.3]     # extra evaluations with epsilon-random actions (the original's mode)
+        paper: false             # true: make_model(..., paper=True) (the paper's network and schedule)
+        default: {...}           # algorithm kwargs for every preset at this budget
+        dgn: {...}               # ... for one preset at this budget
+
+Algorithm keyword arguments are merged in that order (``policy_kwargs`` key by key): the preset,
+top-level ``default``, top-level preset section, the budget's ``default``, the budget's preset
+section, then ``--param`` overrides from the command line.
+"""
+
+from __future__ import annotations
+
+import ast
+import inspect
+from dataclasses import asdict, dataclass, field
+from importlib import resources
+from typing import Any
+
+import yaml
+
+from sb3_hgrn.common.vec_env import REGISTERED_ENVS
+from sb3_hgrn.presets import PRESETS, merge
+
+BUDGETS = ("ci", "cpu", "paper")
+"""Budgets every config file defines: toy sizes for tests, a 2-core CPU sweep, the paper's schedule."""
+
+BUDGET_FIELDS = {
+    "description", "env_kwargs", "n_envs", "eval_n_envs", "total_timesteps", "eval_episodes",
+    "eval_epsilons", "paper",
+}  # fmt: skip
+RESERVED_PARAMS = {"policy", "env", "seed", "verbose", "tensorboard_log", "device", "_init_setup_model"}
+"""Algorithm arguments the runner sets itself (``--seed``, ``--verbose``, ``--device``)."""
+
+
+class ConfigError(ValueError):
+    """A config file or a command-line override that cannot be used (the message says why)."""
+
+
+def check_env_name(env: str) -> None:
+    """Raise :class:`ConfigError` unless ``env`` is a registered env with a config file."""
+    if env not in REGISTERED_ENVS:
+        raise ConfigError(f"Unknown env {env!r}; available: {', '.join(REGISTERED_ENVS)}.")
+
+
+def check_preset_name(preset: str) -> None:
+    """Raise :class:`ConfigError` unless ``preset`` names one of :data:`sb3_hgrn.presets.PRESETS`."""
+    if preset not in PRESETS:
+        raise ConfigError(f"Unknown preset {preset!r}; available: {', '.join(PRESETS)}.")
+
+
+def check_budget_name(budget: str) -> None:
+    """Raise :class:`ConfigError` unless ``budget`` is one of :data:`BUDGETS`."""
+    if budget not in BUDGETS:
+        raise ConfigError(f"Unknown budget {budget!r}; available: {', '.join(BUDGETS)}.")
+
+
+def load_hyperparams(env: str) -> dict[str, Any]:
+    """Read and check ``sb3_hgrn/hyperparams/<env>.yml``."""
+    check_env_name(env)
+    text = (resources.files("sb3_hgrn") / "hyperparams" / f"{env}.yml").read_text(encoding="utf-8")
+    config = yaml.safe_load(text) or {}
+    where = f"hyperparams/{env}.yml"
+    _check_sections(config, {"env_kwargs", "budgets"}, where)
+    budgets = config.get("budgets") or {}
+    for budget in BUDGETS:
+        if budget not in budgets:
+            raise ConfigError(f"{where} has no budget {budget!r}.")
+    for budget, section in budgets.items():
+        check_budget_name(budget)
+        _check_sections(section, BUDGET_FIELDS, f"{where} budget {budget}")
+        for key in ("n_envs", "total_timesteps", "eval_episodes"):
+            if not isinstance(section.get(key), int) or section[key] < 1:
+                raise ConfigError(f"{where} budget {budget}: {key} must be a positive integer.")
+    return config
+
+
+def _check_sections(section: Any, fields: set[str], where: str) -> None:
+    """Check that ``section`` is a mapping of ``fields``, ``default`` and preset names only."""
+    if not isinstance(section, dict):
+        raise ConfigError(f"{where} must be a mapping, got {type(section).__name__}.")
+    for key, value in section.items():
+        if key in fields:
+            continue
+        if key != "default" and key not in PRESETS:
+            raise ConfigError(
+                f"{where}: unknown key {key!r} "
+                f"(expected {', '.join(sorted(fields))}, default or a preset name)."
+            )
+        if value is not None and not isinstance(value, dict):
+            raise ConfigError(f"{where}: section {key!r} must be a mapping of algorithm arguments.")
+
+
+def parse_value(text: str) -> Any:
+    """A command-line value: a Python or YAML literal (``3``, ``1e-3``, ``true``, ``[1, 2]``,
+    ``{hidden_dim: 32}``), else the string itself."""
+    try:
+        return ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        pass
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError:
+        return text
+
+
+def parse_assignments(items: list[str] | None, option: str = "--param") -> dict[str, Any]:
+    """Parse ``key=value`` items into a (nested) dict of values.
+
+    ``["lr=1e-3", "policy_kwargs.hidden_dim=32"]`` gives
+    ``{"lr": 0.001, "policy_kwargs": {"hidden_dim": 32}}``: a dotted key sets a value in a nested mapping.
+    """
+    result: dict[str, Any] = {}
+    for item in items or []:
+        key, sep, text = item.partition("=")
+        path = key.strip().split(".")
+        if not sep or not all(part.strip() for part in path):
+            raise ConfigError(
+                f"Malformed {option} {item!r}: expected key=value (e.g. {option} batch_size=64)."
+            )
+        value: Any = parse_value(text.strip())
+        for part in reversed(path[1:]):
+            value = {part.strip(): value}
+        result = merge(result, {path[0].strip(): value})
+    return result
+
+
+@dataclass
+class RunConfig:
+    """Everything that defines one training run (written to the run folder as ``config.yml``)."""
+
+    env: str
+    preset: str
+    budget: str
+    seed: int
+    env_kwargs: dict[str, Any]
+    n_envs: int
+    eval_n_envs: int
+    total_timesteps: int
+    eval_episodes: int
+    eval_epsilons: list[float]
+    paper: bool
+    hyperparams: dict[str, Any]
+    """Algorithm keyword arguments from the config file and ``--param`` (over the preset's own)."""
+    description: str = ""
+    extra: dict[str, Any] = field(default_factory=dict)
+    """Figures added when the run is set up (algorithm class, resolved kwargs, agent count, version)."""
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data for ``config.yml``."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> RunConfig:
+        """Read back :meth:`to_dict` (unknown keys are kept in ``extra``)."""
+        names = {f.name for f in cls.__dataclass_fields__.values()}
+        known = {key: value for key, value in data.items() if key in names}
+        extra = {key: value for key, value in data.items() if key not in names}
+        known["extra"] = {**known.get("extra", {}), **extra}
+        return cls(**known)
+
+
+def check_params(preset: str, params: dict[str, Any]) -> None:
+    """Raise :class:`ConfigError` for algorithm arguments that preset's class does not take."""
+    algorithm = PRESETS[preset][0]
+    accepted = set(inspect.signature(algorithm.__init__).parameters) - {"self"}
+    for key in params:
+        if key in RESERVED_PARAMS:
+            raise ConfigError(f"{key!r} is set by the runner, not by --param (use the command's own option).")
+        if key not in accepted:
+            raise ConfigError(
+                f"{algorithm.__name__} (preset {preset!r}) takes no argument {key!r}; "
+                f"its arguments: {', '.join(sorted(accepted - RESERVED_PARAMS))}."
+            )
+
+
+def resolve_config(
+    env: str,
+    preset: str,
+    budget: str = "cpu",
+    seed: int = 0,
+    timesteps: int | None = None,
+    params: dict[str, Any] | None = None,
+    env_params: dict[str, Any] | None = None,
+) -> RunConfig:
+    """The configuration of one run of ``preset`` on ``env`` at ``budget``.
+
+    :param timesteps: agent-steps of training instead of the budget's ``total_timesteps``.
+    :param params: algorithm keyword arguments over the config file's (``--param``).
+    :param env_params: env keyword arguments over the config file's (``--env-param``).
+    """
+    check_env_name(env)
+    check_preset_name(preset)
+    check_budget_name(budget)
+    config = load_hyperparams(env)
+    section = config["budgets"][budget]
+    hyperparams: dict[str, Any] = {}
+    for layer in (config.get("default"), config.get(preset), section.get("default"), section.get(preset)):
+        hyperparams = merge(hyperparams, layer or {})
+    hyperparams = merge(hyperparams, params or {})
+    check_params(preset, hyperparams)
+    env_kwargs = merge(
+        merge(config.get("env_kwargs") or {}, section.get("env_kwargs") or {}), env_params or {}
+    )
+    if timesteps is not None and timesteps < 1:
+        raise ConfigError(f"--timesteps must be a positive number of agent-steps, got {timesteps}.")
+    return RunConfig(
+        env=env,
+        preset=preset,
+        budget=budget,
+        seed=int(seed),
+        env_kwargs=env_kwargs,
+        n_envs=int(section["n_envs"]),
+        eval_n_envs=int(section.get("eval_n_envs", section["n_envs"])),
+        total_timesteps=int(timesteps if timesteps is not None else section["total_timesteps"]),
+        eval_episodes=int(section["eval_episodes"]),
+        eval_epsilons=[float(eps) for eps in section.get("eval_epsilons") or []],
+        paper=bool(section.get("paper", False)),
+        hyperparams=hyperparams,
+        description=str(section.get("description", "")),
+    )

@@ -1,0 +1,440 @@
+"""One training run into one folder; evaluating and rendering saved runs.
+
+A run folder (``<root>/<env>/<preset>/seed_<seed>/``) holds::
+
+    config.yml          the resolved configuration (env, env_kwargs, n_envs, preset, algorithm kwargs,
+                        budget, seed, versions)
+    tensorboard/        SB3's TensorBoard logs (when tensorboard is installed)
+    team_returns.csv    one "r,l,t" row per training team episode, after a "#{json}" line (as SB3's Monitor)
+    checkpoints/        model_<agent-steps>_steps.zip every --save-freq agent-steps (optional)
+    model.zip           the final model
+    eval.json           the final evaluation; its presence marks the run as complete
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import sys
+import time
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback
+
+from sb3_hgrn.common.evaluation import evaluate_graph_policy
+from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
+from sb3_hgrn.common.vec_env import GraphVecEnv, make_graph_vec_env
+from sb3_hgrn.experiments.callbacks import TEAM_RETURNS_FILE, TeamMonitorCallback
+from sb3_hgrn.experiments.config import ConfigError, RunConfig
+from sb3_hgrn.presets import PRESETS, make_model, merge, preset_kwargs
+
+CONFIG_FILE = "config.yml"
+MODEL_FILE = "model.zip"
+EVAL_FILE = "eval.json"
+CHECKPOINT_DIR = "checkpoints"
+TENSORBOARD_DIR = "tensorboard"
+EVAL_SEED_OFFSET = 1000
+"""Evaluation envs are seeded with ``seed + 1000`` so they never repeat the training episodes."""
+
+
+def run_folder(root: str | os.PathLike, env: str, preset: str, seed: int) -> Path:
+    """``<root>/<env>/<preset>/seed_<seed>``."""
+    return Path(root) / env / preset / f"seed_{seed}"
+
+
+def read_eval(folder: str | os.PathLike) -> dict[str, Any] | None:
+    """The run's ``eval.json`` if it is complete, else ``None``."""
+    path = Path(folder) / EVAL_FILE
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) and data.get("completed") else None
+
+
+def write_json(path: Path, data: dict[str, Any]) -> None:
+    """Write ``data`` atomically (a killed process never leaves half a file)."""
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def latest_checkpoint(folder: Path) -> Path | None:
+    """The checkpoint with the most agent-steps in ``folder/checkpoints``, if any."""
+    best, best_steps = None, -1
+    for path in (folder / CHECKPOINT_DIR).glob("*_steps.zip"):
+        match = re.search(r"_(\d+)_steps\.zip$", path.name)
+        if match and int(match.group(1)) > best_steps:
+            best, best_steps = path, int(match.group(1))
+    return best
+
+
+def _same_run(folder: Path, config: RunConfig) -> bool:
+    """Whether ``folder/config.yml`` describes the same run as ``config`` (ignoring its ``extra``)."""
+    try:
+        saved = yaml.safe_load((folder / CONFIG_FILE).read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError):
+        return False
+    current = config.to_dict()
+    return isinstance(saved, dict) and all(
+        saved.get(key) == value for key, value in current.items() if key != "extra"
+    )
+
+
+def _clear_run(folder: Path) -> None:
+    """Remove the files a previous run left in ``folder`` (other files, e.g. a sweep's log, stay)."""
+    for name in (CONFIG_FILE, MODEL_FILE, EVAL_FILE, TEAM_RETURNS_FILE):
+        (folder / name).unlink(missing_ok=True)
+    for name in (CHECKPOINT_DIR, TENSORBOARD_DIR):
+        shutil.rmtree(folder / name, ignore_errors=True)
+
+
+def _tensorboard_dir(folder: Path, verbose: int) -> str | None:
+    try:
+        import tensorboard  # noqa: F401
+    except ImportError:
+        if verbose:
+            print("tensorboard is not installed: no TensorBoard logs (pip install tensorboard).")
+        return None
+    return str(folder / TENSORBOARD_DIR)
+
+
+def make_env(config: RunConfig, n_envs: int, seed: int | None, **env_kwargs: Any) -> GraphVecEnv:
+    """The run's env (``config.env_kwargs`` updated with ``env_kwargs``) as a graph VecEnv.
+
+    Bad env arguments raise :class:`ConfigError` with the env's own message.
+    """
+    kwargs = {**config.env_kwargs, **env_kwargs}
+    try:
+        return make_graph_vec_env(config.env, n_envs=n_envs, seed=seed, env_kwargs=kwargs)
+    except (TypeError, ValueError) as error:
+        raise ConfigError(f"Cannot build {config.env} with env arguments {kwargs}: {error}") from error
+
+
+def train_run(
+    config: RunConfig,
+    folder: str | os.PathLike,
+    verbose: int = 1,
+    progress_bar: bool = False,
+    save_freq: int | None = None,
+    device: str = "auto",
+    log_interval: int = 10,
+    overwrite: bool = False,
+) -> dict[str, Any]:
+    """Train ``config`` into ``folder``, save ``model.zip``, evaluate and write ``eval.json``.
+
+    A folder whose ``config.yml`` matches and that holds checkpoints but no ``eval.json`` (a killed
+    run) is resumed from its latest checkpoint with an empty replay buffer; a folder with a complete
+    ``eval.json`` is refused unless ``overwrite``.
+
+    :param save_freq: save a checkpoint every this many agent-steps (``None``: no checkpoints).
+    :param log_interval: team episodes between log dumps.
+    :return: the contents of ``eval.json``.
+    """
+    folder = Path(folder)
+    if read_eval(folder) is not None and not overwrite:
+        raise ConfigError(
+            f"{folder} already holds a completed run ({EVAL_FILE}); pass --overwrite to redo it."
+        )
+    checkpoint = latest_checkpoint(folder) if _same_run(folder, config) and not overwrite else None
+    if checkpoint is None:
+        _clear_run(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    start = time.time()
+    env = make_env(config, config.n_envs, config.seed)
+    algorithm, _ = PRESETS[config.preset]
+    tensorboard_log = _tensorboard_dir(folder, verbose)
+    if checkpoint is not None:
+        model = algorithm.load(
+            checkpoint, env=env, device=device, tensorboard_log=tensorboard_log, verbose=verbose
+        )
+        if verbose:
+            print(f"Resuming from {checkpoint} ({model.num_timesteps} agent-steps done)")
+    else:
+        try:
+            model = make_model(
+                config.preset,
+                env,
+                paper=config.paper,
+                seed=config.seed,
+                verbose=verbose,
+                tensorboard_log=tensorboard_log,
+                device=device,
+                **config.hyperparams,
+            )
+        except (TypeError, ValueError) as error:
+            raise ConfigError(
+                f"Cannot build preset {config.preset} with arguments {config.hyperparams}: {error}"
+            ) from error
+    config.extra = _run_figures(config, env, model)
+    (folder / CONFIG_FILE).write_text(yaml.safe_dump(config.to_dict(), sort_keys=False), encoding="utf-8")
+
+    callbacks: list[BaseCallback] = [
+        TeamMonitorCallback(str(folder / TEAM_RETURNS_FILE), env_id=config.env, append=checkpoint is not None)
+    ]
+    if save_freq:
+        callbacks.append(
+            CheckpointCallback(
+                max(1, save_freq // env.num_envs), str(folder / CHECKPOINT_DIR), name_prefix="model"
+            )
+        )
+    remaining = max(0, config.total_timesteps - model.num_timesteps)
+    model.learn(
+        remaining,
+        callback=callbacks,
+        log_interval=log_interval,
+        progress_bar=progress_bar,
+        reset_num_timesteps=checkpoint is None,
+    )
+    model.save(folder / MODEL_FILE)
+    train_time = time.time() - start
+
+    eval_start = time.time()
+    eval_env = make_env(config, config.eval_n_envs, config.seed + EVAL_SEED_OFFSET)
+    results = evaluate_model(model, eval_env, config.eval_episodes, deterministic=False)
+    for epsilon in config.eval_epsilons:
+        eval_env.seed(config.seed + EVAL_SEED_OFFSET)
+        eps_policy = EpsilonRandomPolicy(model, epsilon, seed=config.seed)
+        eps_results = evaluate_model(eps_policy, eval_env, config.eval_episodes, deterministic=False)
+        results.setdefault("epsilon_evaluations", {})[f"{epsilon:g}"] = eps_results
+    eval_env.close()
+    env.close()
+    n_agents = int(config.extra["n_agents"])
+    results.update(
+        env=config.env,
+        preset=config.preset,
+        budget=config.budget,
+        seed=config.seed,
+        agent_steps=int(model.num_timesteps),
+        env_steps=int(model.num_timesteps // n_agents),
+        n_agents=n_agents,
+        train_time_s=round(train_time, 2),
+        eval_time_s=round(time.time() - eval_start, 2),
+        wall_time_s=round(time.time() - start, 2),
+        resumed_from=None if checkpoint is None else checkpoint.name,
+        completed=True,
+    )
+    write_json(folder / EVAL_FILE, results)
+    return results
+
+
+def _run_figures(config: RunConfig, env: GraphVecEnv, model: GraphOffPolicyAlgorithm) -> dict[str, Any]:
+    """Figures of the set-up run recorded in ``config.yml``: class, resolved kwargs, sizes, versions."""
+    import stable_baselines3
+    import torch
+
+    import sb3_hgrn
+
+    algorithm, kwargs = preset_kwargs(config.preset, paper=config.paper, n_envs=env.num_envs)
+    return {
+        "algorithm": algorithm.__name__,
+        "algorithm_kwargs": _plain(merge(kwargs, config.hyperparams)),
+        "n_agents": int(env.n_agents),
+        "num_envs": int(env.num_envs),
+        "n_parameters": int(sum(p.numel() for p in model.policy.parameters())),
+        "package_version": sb3_hgrn.__version__,
+        "stable_baselines3_version": str(stable_baselines3.__version__),
+        "torch_version": str(torch.__version__),
+        "torch_threads": int(torch.get_num_threads()),
+        "python": sys.version.split()[0],
+        "command": " ".join(sys.argv),
+    }
+
+
+def _plain(value: Any) -> Any:
+    """``value`` with tuples as lists and numpy scalars as Python numbers (for YAML and JSON)."""
+    if isinstance(value, dict):
+        return {key: _plain(item) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(item) for item in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+class EpsilonRandomPolicy:
+    """A model whose action is replaced, per agent with probability ``epsilon``, by a uniformly random
+    valid action (within ``obs["action_mask"]`` when present): the original code's evaluation mode.
+
+    :param model: anything with a graph model's ``predict``.
+    :param epsilon: probability of a random action per agent and step.
+    """
+
+    def __init__(self, model: Any, epsilon: float, seed: int | None = None):
+        if not 0.0 <= epsilon <= 1.0:
+            raise ValueError(f"epsilon must lie in [0, 1], got {epsilon}.")
+        self.model = model
+        self.epsilon = epsilon
+        self.n_actions = int(model.action_space.n)
+        self.rng = np.random.default_rng(seed)
+
+    def predict(
+        self,
+        observation: dict[str, np.ndarray],
+        state: Any = None,
+        episode_start: Any = None,
+        deterministic: bool = False,
+    ) -> tuple[np.ndarray, Any]:
+        """The model's actions ``(n_slots,)``, each random with probability ``epsilon``."""
+        actions, state = self.model.predict(
+            observation, state=state, episode_start=episode_start, deterministic=deterministic
+        )
+        n_slots = len(observation["obs"])
+        mask = observation.get("action_mask")
+        valid = (
+            np.ones((n_slots, self.n_actions), dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
+        )
+        random_actions = np.argmax(self.rng.random(valid.shape) * valid, axis=1)  # uniform among valid
+        explore = self.rng.random(n_slots) < self.epsilon
+        return np.where(explore, random_actions, actions), state
+
+
+def evaluate_model(model: Any, env: GraphVecEnv, n_episodes: int, deterministic: bool) -> dict[str, Any]:
+    """Team-return figures of ``n_episodes`` episodes: mean, std, per-episode returns and lengths."""
+    returns, lengths = evaluate_graph_policy(
+        model, env, n_eval_episodes=n_episodes, deterministic=deterministic, return_episode_rewards=True
+    )
+    return {
+        "mean": float(np.mean(returns)),
+        "std": float(np.std(returns)),
+        "returns": [float(r) for r in returns],
+        "lengths": [int(n) for n in lengths],
+        "n_episodes": len(returns),
+        "deterministic": bool(deterministic),
+        "epsilon": float(getattr(model, "epsilon", 0.0)),
+    }
+
+
+def algorithm_of_zip(path: Path) -> type[GraphOffPolicyAlgorithm]:
+    """``SoftHGRN`` or ``SACHGRN``, from the policy class recorded in a saved model."""
+    import sb3_hgrn
+
+    with zipfile.ZipFile(path) as archive:
+        module = json.loads(archive.read("data"))["policy_class"].get("__module__", "")
+    for name in ("sac_hgrn", "soft_hgrn"):
+        if f"sb3_hgrn.{name}" in module:
+            return getattr(sb3_hgrn, "SACHGRN" if name == "sac_hgrn" else "SoftHGRN")
+    raise ConfigError(f"{path} was not saved by an sb3_hgrn algorithm (policy module {module!r}).")
+
+
+def locate_run(path: str | os.PathLike, env: str | None = None) -> tuple[Path, RunConfig]:
+    """The model file and run configuration of ``path`` (a run folder, its ``model.zip`` or a checkpoint).
+
+    A bare ``.zip`` outside any run folder needs ``env`` (then the env's defaults are used).
+    """
+    path = Path(path)
+    if path.is_dir():
+        model_path = path / MODEL_FILE if (path / MODEL_FILE).exists() else latest_checkpoint(path)
+        if model_path is None:
+            raise ConfigError(f"{path} holds neither {MODEL_FILE} nor a checkpoint.")
+        candidates = [path]
+    else:
+        if not path.exists() and Path(f"{path}.zip").exists():
+            path = Path(f"{path}.zip")
+        if not path.exists():
+            raise ConfigError(f"No run folder or model file at {path}.")
+        model_path = path
+        candidates = [path.parent, path.parent.parent]
+    for folder in candidates:
+        if (folder / CONFIG_FILE).exists():
+            data = yaml.safe_load((folder / CONFIG_FILE).read_text(encoding="utf-8"))
+            config = RunConfig.from_dict(data)
+            if env is not None and env != config.env:
+                raise ConfigError(f"{path} was trained on {config.env}, not {env}.")
+            return model_path, config
+    if env is None:
+        raise ConfigError(f"No {CONFIG_FILE} beside {path}: pass --env to say which env it runs on.")
+    from sb3_hgrn.experiments.config import check_env_name
+
+    check_env_name(env)
+    return model_path, RunConfig(env, "", "", 0, {}, 1, 1, 0, 10, [], False, {})
+
+
+def load_run(
+    path: str | os.PathLike,
+    env: str | None = None,
+    n_envs: int | None = None,
+    seed: int | None = None,
+    device: str = "auto",
+    **env_kwargs: Any,
+) -> tuple[GraphOffPolicyAlgorithm, GraphVecEnv, RunConfig]:
+    """Load a saved run's model onto a fresh copy of its env (``env_kwargs`` over the run's)."""
+    model_path, config = locate_run(path, env)
+    algorithm = PRESETS[config.preset][0] if config.preset in PRESETS else algorithm_of_zip(model_path)
+    vec_env = make_env(
+        config,
+        n_envs or config.eval_n_envs,
+        config.seed + EVAL_SEED_OFFSET if seed is None else seed,
+        **env_kwargs,
+    )
+    return algorithm.load(model_path, env=vec_env, device=device), vec_env, config
+
+
+def evaluate_run(
+    path: str | os.PathLike,
+    n_episodes: int = 10,
+    deterministic: bool = False,
+    epsilon: float = 0.0,
+    env: str | None = None,
+    n_envs: int | None = None,
+    seed: int | None = None,
+    **env_kwargs: Any,
+) -> dict[str, Any]:
+    """Evaluate a saved run (see :func:`load_run`); ``epsilon`` mixes in random valid actions."""
+    model, vec_env, _ = load_run(path, env=env, n_envs=n_envs, seed=seed, device="cpu", **env_kwargs)
+    policy = EpsilonRandomPolicy(model, epsilon, seed=seed) if epsilon > 0 else model
+    try:
+        return evaluate_model(policy, vec_env, n_episodes, deterministic)
+    finally:
+        vec_env.close()
+
+
+def render_run(
+    path: str | os.PathLike,
+    out: str | os.PathLike,
+    steps: int | None = None,
+    fps: float = 10.0,
+    deterministic: bool = False,
+    env: str | None = None,
+    seed: int | None = None,
+    **env_kwargs: Any,
+) -> int:
+    """Run one episode of copy 0 with ``render_mode="rgb_array"`` and write the frames as a GIF.
+
+    :param steps: stop after this many steps (default: the whole episode).
+    :return: the number of frames written.
+    """
+    from PIL import Image
+
+    model, vec_env, _ = load_run(
+        path, env=env, n_envs=1, seed=seed, device="cpu", render_mode="rgb_array", **env_kwargs
+    )
+    try:
+        observations = vec_env.reset()
+        frames = [vec_env.render()]
+        state, starts = None, np.ones(vec_env.num_envs, dtype=bool)
+        step = 0
+        while steps is None or step < steps:
+            actions, state = model.predict(
+                observations, state=state, episode_start=starts, deterministic=deterministic
+            )
+            observations, _, dones, _ = vec_env.step(actions)
+            step += 1
+            if dones[0]:  # the copy has already reset: its next frame would show a new episode
+                break
+            frames.append(vec_env.render())
+    finally:
+        vec_env.close()
+    frames = [frame for frame in frames if frame is not None]
+    if not frames:
+        raise ConfigError(f"{vec_env} rendered no frames.")
+    images = [Image.fromarray(np.asarray(frame, dtype=np.uint8)) for frame in frames]
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    images[0].save(out, save_all=True, append_images=images[1:], duration=max(1, round(1000 / fps)), loop=0)
+    return len(images)

@@ -1,0 +1,367 @@
+"""The paper's Table 1 sweep: every (env, preset, seed) trained and evaluated in its own process.
+
+Runs go to ``<folder>/table1/<env>/<preset>/seed_<seed>/`` (see :mod:`sb3_hgrn.experiments.runs`);
+a run whose folder holds a complete ``eval.json`` is skipped, so a killed sweep resumes where it
+stopped. After every finished run the tables ``<folder>/table1.csv`` and ``<folder>/table1.md`` are
+rewritten from the run folders.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+
+from sb3_hgrn.experiments.config import (
+    ConfigError,
+    check_budget_name,
+    check_env_name,
+    check_preset_name,
+    load_hyperparams,
+)
+from sb3_hgrn.experiments.paper import (
+    ENV_TITLES,
+    PAPER_EVAL_EPISODES,
+    PAPER_SEEDS,
+    PAPER_SIZES,
+    PAPER_TABLE1,
+    PRESET_TITLES,
+    TABLE1_ENVS,
+)
+from sb3_hgrn.experiments.runs import read_eval, run_folder
+from sb3_hgrn.presets import TABLE1
+
+LOG_FILE = "train.log"
+COMPARISON_EPSILON = "0.3"
+"""The epsilon of the authors' evaluation mode, reported beside the plain policy."""
+
+
+@dataclass
+class Job:
+    """One (env, preset, seed) run of the sweep."""
+
+    env: str
+    preset: str
+    seed: int
+    folder: Path
+
+
+def plan_jobs(root: Path, envs: Sequence[str], presets: Sequence[str], seeds: Sequence[int]) -> list[Job]:
+    """All runs, seed by seed (a partial sweep then covers the whole table with its first seeds)."""
+    return [
+        Job(env, preset, seed, run_folder(root, env, preset, seed))
+        for seed in seeds
+        for env in envs
+        for preset in presets
+    ]
+
+
+def _print(message: str) -> None:
+    print(message, flush=True)
+
+
+def train_command(
+    job: Job, budget: str, root: Path, threads: int | None, save_freq: int | None = None
+) -> list[str]:
+    """The ``python -m sb3_hgrn train`` command line of ``job``."""
+    command = [
+        sys.executable,
+        "-m",
+        "sb3_hgrn",
+        "train",
+        "--env",
+        job.env,
+        "--preset",
+        job.preset,
+        "--budget",
+        budget,
+        "--seed",
+        str(job.seed),
+        "--folder",
+        str(root),
+        "--verbose",
+        "0",
+    ]
+    if threads is not None:
+        command += ["--threads", str(threads)]
+    if save_freq is not None:
+        command += ["--save-freq", str(save_freq)]
+    return command
+
+
+def _child_env(threads: int | None) -> dict[str, str]:
+    """Environment of a child process: this package importable, thread counts capped if asked."""
+    env = dict(os.environ)
+    package_parent = str(Path(__file__).resolve().parents[2])
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (package_parent, env.get("PYTHONPATH", "")) if p)
+    if threads is not None:
+        for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+            env[name] = str(threads)
+    return env
+
+
+def check_budget_of_folder(root: Path, budget: str) -> None:
+    """Refuse to mix budgets: complete runs under ``root`` must all be of ``budget``."""
+    for path in root.glob("*/*/seed_*/eval.json"):
+        done = read_eval(path.parent)
+        if done is not None and done.get("budget") != budget:
+            raise ConfigError(
+                f"{path.parent} holds a run of budget {done.get('budget')!r}, not {budget!r}: "
+                "use another --folder for this budget."
+            )
+
+
+def run_sweep(
+    budget: str,
+    n_seeds: int = 3,
+    folder: str | os.PathLike = "results",
+    jobs: int = 1,
+    presets: Sequence[str] | None = None,
+    envs: Sequence[str] | None = None,
+    threads: int | None = None,
+    save_freq: int | None = None,
+    log: Callable[[str], None] = _print,
+) -> list[Job]:
+    """Train and evaluate every missing run, ``jobs`` processes at a time, and write the tables.
+
+    :param threads: torch threads per process (default: 1 when ``jobs > 1``, else torch's own).
+    :param save_freq: checkpoint every this many agent-steps, so that a killed run resumes from its
+        last checkpoint (default: a killed run restarts from scratch).
+    :return: the runs that failed.
+    """
+    check_budget_name(budget)
+    envs, presets = list(envs or TABLE1_ENVS), list(presets or TABLE1)
+    for env in envs:
+        check_env_name(env)
+        load_hyperparams(env)
+    for preset in presets:
+        check_preset_name(preset)
+    if n_seeds < 1 or jobs < 1:
+        raise ConfigError(f"--seeds and --jobs must be >= 1, got {n_seeds} and {jobs}.")
+    if threads is None and jobs > 1:
+        threads = 1
+    results, root = Path(folder), Path(folder) / "table1"
+    check_budget_of_folder(root, budget)
+    seeds = list(range(n_seeds))
+    all_jobs = plan_jobs(root, envs, presets, seeds)
+    todo = [job for job in all_jobs if read_eval(job.folder) is None]
+    log(
+        f"Table 1, budget {budget}: {len(all_jobs)} runs, {len(all_jobs) - len(todo)} already done, "
+        f"{len(todo)} to run, {jobs} at a time"
+    )
+    failed: list[Job] = []
+    running: list[tuple[Job, subprocess.Popen, TextIO, float]] = []
+    finished = 0
+    try:
+        while todo or running:
+            while todo and len(running) < jobs:
+                job = todo.pop(0)
+                job.folder.mkdir(parents=True, exist_ok=True)
+                log_file = open(job.folder / LOG_FILE, "w", encoding="utf-8")  # noqa: SIM115
+                process = subprocess.Popen(
+                    train_command(job, budget, root, threads, save_freq),
+                    stdout=log_file,
+                    stderr=subprocess.STDOUT,
+                    env=_child_env(threads),
+                )
+                running.append((job, process, log_file, time.time()))
+            time.sleep(0.2)
+            for entry in list(running):
+                job, process, log_file, started = entry
+                if process.poll() is None:
+                    continue
+                running.remove(entry)
+                log_file.close()
+                finished += 1
+                done = read_eval(job.folder)
+                total = finished + len(todo) + len(running)
+                label = f"[{finished}/{total}] {job.env} {job.preset} seed {job.seed}"
+                if process.returncode == 0 and done is not None:
+                    log(
+                        f"{label}: team return {done['mean']:.1f} +- {done['std']:.1f} "
+                        f"({time.time() - started:.0f} s)"
+                    )
+                else:
+                    failed.append(job)
+                    log(
+                        f"{label}: FAILED (exit {process.returncode}); see {job.folder / LOG_FILE}:\n"
+                        + _tail(job.folder / LOG_FILE)
+                    )
+                write_tables(results, budget, envs, presets, seeds)
+    except KeyboardInterrupt:
+        for _, process, log_file, _ in running:
+            process.terminate()
+            process.wait()
+            log_file.close()
+        write_tables(results, budget, envs, presets, seeds)
+        raise
+    write_tables(results, budget, envs, presets, seeds)
+    log(f"Wrote {results / 'table1.csv'} and {results / 'table1.md'}")
+    return failed
+
+
+def _tail(path: Path, lines: int = 15) -> str:
+    try:
+        return "".join(path.read_text(encoding="utf-8", errors="replace").splitlines(True)[-lines:])
+    except OSError:
+        return ""
+
+
+def _mean_std(values: list[float]) -> tuple[float | None, float | None]:
+    """Mean and (population) standard deviation; ``None`` for no values, and std ``None`` for one."""
+    if not values:
+        return None, None
+    return float(np.mean(values)), float(np.std(values)) if len(values) > 1 else None
+
+
+def collect_rows(
+    root: Path, envs: Sequence[str], presets: Sequence[str], seeds: Sequence[int]
+) -> list[dict[str, Any]]:
+    """One row per env x preset from the complete runs under ``root``."""
+    rows = []
+    for env in envs:
+        for preset in presets:
+            evals = [e for e in (read_eval(run_folder(root, env, preset, seed)) for seed in seeds) if e]
+            mean, std = _mean_std([e["mean"] for e in evals])
+            eps = [
+                e["epsilon_evaluations"][COMPARISON_EPSILON]["mean"]
+                for e in evals
+                if COMPARISON_EPSILON in e.get("epsilon_evaluations", {})
+            ]
+            eps_mean, eps_std = _mean_std(eps)
+            paper = PAPER_TABLE1.get(preset, {}).get(env, (None, None))
+            rows.append(
+                {
+                    "env": env,
+                    "preset": preset,
+                    "mean": mean,
+                    "std": std,
+                    "seeds_done": len(evals),
+                    "seeds": len(seeds),
+                    "seed_means": " ".join(f"{e['mean']:.2f}" for e in evals),
+                    "eval_episodes": min((e["n_episodes"] for e in evals), default=None),
+                    "n_agents": evals[0]["n_agents"] if evals else None,
+                    "agent_steps": evals[0]["agent_steps"] if evals else None,
+                    "env_steps": evals[0]["env_steps"] if evals else None,
+                    "wall_time_s": round(sum(e["wall_time_s"] for e in evals), 1) if evals else None,
+                    "eps_0.3_mean": eps_mean,
+                    "eps_0.3_std": eps_std,
+                    "paper_mean": paper[0],
+                    "paper_std": paper[1],
+                }
+            )
+    return rows
+
+
+def write_tables(
+    results: Path, budget: str, envs: Sequence[str], presets: Sequence[str], seeds: Sequence[int]
+) -> list[dict[str, Any]]:
+    """Write ``table1.csv`` and ``table1.md`` into ``results`` from its run folders."""
+    results.mkdir(parents=True, exist_ok=True)
+    rows = collect_rows(results / "table1", envs, presets, seeds)
+    with open(results / "table1.csv", "w", newline="", encoding="utf-8") as file:
+        writer = csv.DictWriter(file, fieldnames=list(rows[0]))
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({key: "" if value is None else _round(value) for key, value in row.items()})
+    (results / "table1.md").write_text(markdown(rows, budget, envs, presets, seeds), encoding="utf-8")
+    return rows
+
+
+def _round(value: Any) -> Any:
+    return round(value, 2) if isinstance(value, float) else value
+
+
+def _number(value: float) -> str:
+    return f"{value:.0f}" if abs(value) >= 100 else f"{value:.1f}"
+
+
+def _cell(mean: float | None, std: float | None) -> str:
+    """``mean +- std``, the mean alone when there is no spread to show, ``-`` when missing."""
+    if mean is None:
+        return "-"
+    return _number(mean) if std is None else f"{_number(mean)} +- {_number(std)}"
+
+
+def markdown(
+    rows: list[dict[str, Any]], budget: str, envs: Sequence[str], presets: Sequence[str], seeds: Sequence[int]
+) -> str:
+    """Our Table 1 beside the paper's, with the budget, env sizes and evaluation protocol."""
+    by_key = {(row["env"], row["preset"]): row for row in rows}
+    smaller = budget != "paper"
+    lines = [
+        f"# Table 1 reproduced with sb3_hgrn: budget `{budget}`",
+        "",
+        "Team return (all agents' rewards summed over an episode). **ours**: mean +- std over seeds of each "
+        f"seed's mean evaluation return ({len(seeds)} seed(s) planned; a cell with fewer seeds done shows "
+        "`(done/planned)`, a single seed no spread). "
+        f"**paper**: Table 1 of Ye et al. (AAAI 2022), mean +- std over {PAPER_SEEDS} runs of "
+        f"{PAPER_EVAL_EPISODES:,} test episodes each. `-`: run missing.",
+        "",
+        "Evaluation protocol: after training, the plain policy (actions sampled from stochastic "
+        "policies, greedy for the deterministic ones: DQN, CommNet, DGN and the -S variants) on fresh env "
+        "copies seeded `seed + 1000`; the second table mixes in a uniformly random valid action per agent "
+        f"with probability {COMPARISON_EPSILON} (the authors' code's evaluation mode).",
+        "",
+    ]
+    if smaller:
+        lines += [
+            f"**The env sizes and training budgets of budget `{budget}` are smaller than the paper's** "
+            "(below), so the absolute numbers are not comparable with the paper's; compare orderings "
+            "and gaps.",
+            "",
+        ]
+    lines += [
+        "| env | sizes (this budget) | agent-steps | env steps | eval episodes / seed | paper's setting |",
+        "|---|---|---|---|---|---|",
+    ]
+    for env in envs:
+        section = load_hyperparams(env)["budgets"][budget]
+        done = [row for row in rows if row["env"] == env and row["agent_steps"] is not None]
+        agent_steps = done[0]["agent_steps"] if done else section["total_timesteps"]
+        env_steps = f"{done[0]['env_steps']:,}" if done else "-"
+        description = section.get("description") or str(section.get("env_kwargs", {}))
+        copies = f"{section['n_envs']} env cop{'y' if section['n_envs'] == 1 else 'ies'} while training"
+        lines.append(
+            f"| {ENV_TITLES.get(env, env)} | {description}; {copies} "
+            f"| {agent_steps:,} | {env_steps} | {section['eval_episodes']} | {PAPER_SIZES.get(env, '-')} |"
+        )
+    header = " | ".join(f"{ENV_TITLES.get(env, env)} ours | paper" for env in envs)
+    lines += ["", f"| Algorithm | {header} |", "|---|" + "---|---|" * len(envs)]
+    for preset in presets:
+        cells = []
+        for env in envs:
+            row = by_key[(env, preset)]
+            ours = _cell(row["mean"], row["std"])
+            if row["seeds_done"] and row["seeds_done"] < len(seeds):
+                ours += f" ({row['seeds_done']}/{len(seeds)})"
+            paper = "-" if row["paper_mean"] is None else f"{row['paper_mean']:.0f} +- {row['paper_std']:.0f}"
+            cells += [ours, paper]
+        lines.append(f"| {PRESET_TITLES.get(preset, preset)} | " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        f"With epsilon = {COMPARISON_EPSILON} random actions (ours only):",
+        "",
+        "| Algorithm | " + " | ".join(ENV_TITLES.get(env, env) for env in envs) + " |",
+        "|---|" + "---|" * len(envs),
+    ]
+    for preset in presets:
+        cells = [
+            _cell(by_key[(env, preset)]["eps_0.3_mean"], by_key[(env, preset)]["eps_0.3_std"]) for env in envs
+        ]
+        lines.append(f"| {PRESET_TITLES.get(preset, preset)} | " + " | ".join(cells) + " |")
+    wall = sum(row["wall_time_s"] or 0.0 for row in rows)
+    lines += [
+        "",
+        f"Summed wall time of the runs done: {wall / 60:.1f} min (per-run figures in table1.csv).",
+        "",
+    ]
+    return "\n".join(lines)

@@ -1,0 +1,246 @@
+"""The ``sb3-hgrn`` command line: train / evaluate / render runs, configs, and the Table 1 sweep."""
+
+import csv
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from PIL import Image
+
+from sb3_hgrn import SoftHGRN, make_graph_vec_env
+from sb3_hgrn.cli import main
+from sb3_hgrn.common.vec_env import REGISTERED_ENVS
+from sb3_hgrn.experiments.config import (
+    BUDGETS,
+    ConfigError,
+    load_hyperparams,
+    parse_assignments,
+    resolve_config,
+)
+from sb3_hgrn.experiments.paper import PAPER_TABLE1, TABLE1_ENVS
+from sb3_hgrn.experiments.runs import EpsilonRandomPolicy, make_env
+from sb3_hgrn.experiments.table1 import write_tables
+from sb3_hgrn.presets import TABLE1, make_model
+
+REPO = Path(__file__).resolve().parents[1]
+TOY = ["--budget", "ci", "--verbose", "0", "--threads", "1"]
+
+
+@pytest.fixture(scope="module")
+def surviving_run(tmp_path_factory) -> Path:
+    """A toy Surviving run (5 agents, 20-step episodes, 600 agent-steps) trained through ``main``."""
+    root = tmp_path_factory.mktemp("runs")
+    args = ["train", "--env", "surviving_v0", "--preset", "soft_hgrn", "--seed", "3", "--folder", str(root)]
+    args += [*TOY, "--timesteps", "600", "--save-freq", "300"]
+    args += ["--param", "batch_size=4", "policy_kwargs.hidden_dim=16", "--env-param", "n_agents=5"]
+    assert main(args) == 0
+    return root / "surviving_v0" / "soft_hgrn" / "seed_3"
+
+
+def test_train_writes_the_run_folder(surviving_run):
+    names = {path.name for path in surviving_run.iterdir()}
+    assert {"config.yml", "model.zip", "eval.json", "team_returns.csv", "tensorboard", "checkpoints"} <= names
+    assert list((surviving_run / "tensorboard").glob("*/events.out.tfevents.*"))
+    assert sorted(p.name for p in (surviving_run / "checkpoints").iterdir()) == [
+        "model_300_steps.zip",
+        "model_600_steps.zip",
+    ]
+
+    config = yaml.safe_load((surviving_run / "config.yml").read_text())
+    assert config["env"] == "surviving_v0" and config["preset"] == "soft_hgrn" and config["budget"] == "ci"
+    assert config["seed"] == 3 and config["n_envs"] == 1 and config["total_timesteps"] == 600
+    assert config["env_kwargs"]["n_agents"] == 5 and config["env_kwargs"]["max_cycles"] == 20
+    assert config["extra"]["algorithm"] == "SoftHGRN" and config["extra"]["package_version"]
+    assert config["extra"]["algorithm_kwargs"]["batch_size"] == 4
+
+    lines = (surviving_run / "team_returns.csv").read_text().splitlines()
+    metadata = json.loads(lines[0][1:])
+    assert lines[0].startswith("#") and metadata["env_id"] == "surviving_v0" and metadata["n_agents"] == 5
+    assert lines[1] == "r,l,t"
+    rows = list(csv.DictReader(lines[1:]))
+    assert len(rows) == 600 // 5 // 20  # team episodes of 20 steps of 5 agents
+    assert all(int(row["l"]) == 20 and np.isfinite(float(row["r"])) for row in rows)
+    assert [float(row["t"]) for row in rows] == sorted(float(row["t"]) for row in rows)
+
+    results = json.loads((surviving_run / "eval.json").read_text())
+    assert results["completed"] and results["n_episodes"] == 2 and len(results["returns"]) == 2
+    assert results["mean"] == pytest.approx(np.mean(results["returns"]))
+    assert results["std"] == pytest.approx(np.std(results["returns"]))
+    assert results["deterministic"] is False and results["epsilon"] == 0.0
+    assert results["agent_steps"] == 600 and results["env_steps"] == 120 and results["n_agents"] == 5
+    assert results["wall_time_s"] >= results["train_time_s"] > 0
+    assert results["epsilon_evaluations"]["0.3"]["n_episodes"] == 2
+
+
+def test_overrides_reach_model_and_env(surviving_run):
+    model = SoftHGRN.load(surviving_run / "model.zip")
+    assert model.batch_size == 4 and model.policy_kwargs["hidden_dim"] == 16
+    assert model.learning_starts == 120  # from the ci budget of the config file
+
+
+def test_evaluate_and_render(surviving_run, tmp_path, capsys):
+    assert main(["evaluate", str(surviving_run), "--episodes", "3", "--threads", "1"]) == 0
+    assert "team return" in capsys.readouterr().out
+    checkpoint = surviving_run / "checkpoints" / "model_300_steps.zip"
+    assert main(["evaluate", str(checkpoint), "--episodes", "2", "--deterministic", "--epsilon", "0.3"]) == 0
+    assert "over 2 episodes (greedy actions, epsilon 0.3)" in capsys.readouterr().out
+
+    gif = tmp_path / "episode.gif"
+    assert (
+        main(["render", str(surviving_run / "model.zip"), "--out", str(gif), "--steps", "12", "--fps", "5"])
+        == 0
+    )
+    with Image.open(gif) as image:
+        assert image.n_frames >= 3  # Pillow merges identical consecutive frames
+
+
+def test_train_refuses_a_completed_run_and_resumes_from_checkpoint(surviving_run, capsys):
+    args = ["train", "--env", "surviving_v0", "--preset", "soft_hgrn", "--seed", "3"]
+    args += ["--folder", str(surviving_run.parents[2]), *TOY, "--timesteps", "600", "--save-freq", "300"]
+    args += ["--param", "batch_size=4", "policy_kwargs.hidden_dim=16", "--env-param", "n_agents=5"]
+    with pytest.raises(SystemExit) as error:
+        main(args)
+    assert error.value.code == 2 and "already holds a completed run" in capsys.readouterr().err
+    for name in ("eval.json", "model.zip", "checkpoints/model_600_steps.zip"):  # as if killed at 300
+        (surviving_run / name).unlink()
+    assert main([*args, "--verbose", "1"]) == 0
+    assert "Resuming from" in capsys.readouterr().out
+    results = json.loads((surviving_run / "eval.json").read_text())
+    assert results["resumed_from"] == "model_300_steps.zip" and results["agent_steps"] == 600
+    lines = (surviving_run / "team_returns.csv").read_text().splitlines()
+    assert lines.count("r,l,t") == 1 and len(lines) == 2 + 6 + 3  # the resumed half appended
+
+
+def test_epsilon_never_picks_invalid_actions_on_ctc(tmp_path):
+    env = make_graph_vec_env(
+        "ctc_v0", seed=0, env_kwargs=resolve_config("ctc_v0", "soft_hgrn", "ci").env_kwargs
+    )
+    model = SoftHGRN("GraphPolicy", env, learning_starts=0, seed=0)
+    policy = EpsilonRandomPolicy(model, epsilon=1.0, seed=0)
+    observations, chosen = env.reset(), []
+    for _ in range(30):
+        actions, _ = policy.predict(observations)
+        mask = observations["action_mask"].astype(bool)
+        assert mask[np.arange(len(actions)), actions].all()
+        chosen.append(actions)
+        observations, *_ = env.step(actions)
+    assert len(np.unique(np.concatenate(chosen))) == env.action_space.n  # all valid actions occur
+
+    args = [
+        "train",
+        "--env",
+        "ctc_v0",
+        "--preset",
+        "dgn",
+        "--folder",
+        str(tmp_path),
+        *TOY,
+        "--timesteps",
+        "400",
+    ]
+    assert main(args) == 0
+    # the env raises on any action outside an agent's group: evaluation with epsilon 1 must not
+    assert (
+        main(["evaluate", str(tmp_path / "ctc_v0" / "dgn" / "seed_0"), "--episodes", "2", "--epsilon", "1"])
+        == 0
+    )
+
+
+def test_parse_assignments():
+    parsed = parse_assignments(["lr=1e-3", "policy_kwargs.hidden_dim=32", "policy_kwargs.recurrent=false"])
+    assert parsed == {"lr": 1e-3, "policy_kwargs": {"hidden_dim": 32, "recurrent": False}}
+    assert parse_assignments(["alpha_optimizer=sgd", "x={a: 1}", "y=[1, 2]"]) == {
+        "alpha_optimizer": "sgd",
+        "x": {"a": 1},
+        "y": [1, 2],
+    }
+    for bad in (["batch_size"], ["=3"], ["a..b=1"]):
+        with pytest.raises(ConfigError, match="Malformed"):
+            parse_assignments(bad)
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["train", "--env", "nope_v0", "--preset", "dqn"], "Unknown env 'nope_v0'"),
+        (["train", "--env", "surviving_v0", "--preset", "nope"], "Unknown preset 'nope'"),
+        (["train", "--env", "surviving_v0", "--preset", "dqn", "--budget", "huge"], "Unknown budget 'huge'"),
+        (["train", "--env", "surviving_v0", "--preset", "dqn", "--param", "batch_size"], "Malformed --param"),
+        (
+            ["train", "--env", "surviving_v0", "--preset", "dqn", "--param", "bogus=1"],
+            "takes no argument 'bogus'",
+        ),
+        (["train", "--env", "surviving_v0", "--preset", "dqn", "--param", "seed=1"], "set by the runner"),
+        (
+            ["train", "--env", "surviving_v0", "--preset", "dqn", "--param", "alpha_optimizer=x"],
+            "Cannot build preset",
+        ),
+        (["train", "--env", "surviving_v0", "--preset", "dqn", "--env-param", "n_agnts=3"], "Cannot build"),
+        (["reproduce", "table1", "--budget", "ci", "--envs", "nope_v0"], "Unknown env 'nope_v0'"),
+        (["reproduce", "table1", "--budget", "nope"], "Unknown budget 'nope'"),
+        (["evaluate", "/nonexistent/run"], "No run folder or model file"),
+    ],
+)
+def test_bad_input_gives_clear_errors(args, message, tmp_path, capsys):
+    with pytest.raises(SystemExit) as error:
+        main([*args, "--folder", str(tmp_path)] if args[0] != "evaluate" else args)
+    assert error.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_configs_define_every_budget_and_build_every_preset():
+    for env in REGISTERED_ENVS:
+        config = load_hyperparams(env)
+        assert set(BUDGETS) <= set(config["budgets"])
+        assert resolve_config(env, "soft_hgrn", "paper").paper
+    for env in (*TABLE1_ENVS, "ctc_v0"):
+        vec_env = None
+        for preset in TABLE1:
+            config = resolve_config(env, preset, "ci")
+            vec_env = vec_env or make_env(config, config.n_envs, 0)
+            model = make_model(preset, vec_env, paper=config.paper, seed=0, **config.hyperparams)
+            assert model.learning_starts < config.total_timesteps
+        vec_env.close()
+    assert set(PAPER_TABLE1) == set(TABLE1)
+
+
+def test_reproduce_table1_writes_tables_and_resumes(tmp_path):
+    command = [sys.executable, "-m", "sb3_hgrn", "reproduce", "table1", "--budget", "ci", "--seeds", "1"]
+    command += ["--presets", "dqn", "soft_hgrn", "--envs", "surviving_v0", "--folder", str(tmp_path)]
+    command += ["--threads", "1"]
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "2 to run" in done.stdout
+
+    rows = list(csv.DictReader((tmp_path / "table1.csv").open()))
+    assert [(row["env"], row["preset"]) for row in rows] == [
+        ("surviving_v0", "dqn"),
+        ("surviving_v0", "soft_hgrn"),
+    ]
+    for row in rows:
+        assert row["seeds_done"] == "1" and row["eval_episodes"] == "2" and row["agent_steps"] == "1200"
+        assert row["env_steps"] == "200" and float(row["wall_time_s"]) > 0 and row["mean"] != ""
+    table = (tmp_path / "table1.md").read_text()
+    assert "budget `ci`" in table and "smaller than the paper's" in table and "| Soft-HGRN | " in table
+    assert "194 +- 41" in table and "-7453 +- 74" in table  # the paper's figures beside ours
+
+    runs = tmp_path / "table1" / "surviving_v0"
+    kept = (runs / "dqn" / "seed_0" / "eval.json").stat().st_mtime_ns
+    (runs / "soft_hgrn" / "seed_0" / "eval.json").unlink()
+    done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "1 already done, 1 to run" in done.stdout and "soft_hgrn seed 0" in done.stdout
+    assert "dqn seed 0" not in done.stdout.split("to run")[1]
+    assert (runs / "dqn" / "seed_0" / "eval.json").stat().st_mtime_ns == kept
+    assert (runs / "soft_hgrn" / "seed_0" / "eval.json").exists()
+
+    rows = write_tables(tmp_path, "ci", ["surviving_v0"], ["dqn", "dgn"], [0, 1])
+    assert rows[1]["mean"] is None and rows[0]["seeds_done"] == 1
+    table = (tmp_path / "table1.md").read_text()
+    assert "| DGN | - | -286 +- 67 |" in table and "(1/2)" in table
