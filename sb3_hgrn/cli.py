@@ -1,4 +1,5 @@
-"""``sb3-hgrn`` / ``python -m sb3_hgrn``: train, evaluate and render runs, reproduce the paper's Table 1.
+"""``sb3-hgrn`` / ``python -m sb3_hgrn``: train, evaluate and render runs, reproduce the paper's Table 1
+and draw its figures.
 
 Examples::
 
@@ -6,6 +7,7 @@ Examples::
     sb3-hgrn evaluate runs/surviving_v0/soft_hgrn/seed_0 --episodes 10 --epsilon 0.3
     sb3-hgrn render runs/surviving_v0/soft_hgrn/seed_0 --out episode.gif
     sb3-hgrn reproduce table1 --budget cpu --seeds 3 --jobs 2
+    sb3-hgrn figure ctc --budget cpu --seeds 3 --jobs 2
 
 See docs/cli.md.
 """
@@ -43,10 +45,12 @@ def _add_env_params(parser: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The argument parser with its subcommands ``train``, ``evaluate``, ``render``, ``reproduce``."""
+    """The argument parser with its subcommands ``train``, ``evaluate``, ``render``, ``reproduce``,
+    ``figure``."""
     parser = argparse.ArgumentParser(
         prog="sb3-hgrn",
-        description="Train, evaluate and render sb3_hgrn runs; reproduce the paper's Table 1 (docs/cli.md).",
+        description="Train, evaluate and render sb3_hgrn runs; reproduce the paper's Table 1 and figures "
+        "(docs/cli.md).",
         epilog="examples:\n" + __doc__.split("Examples::\n\n")[1].split("\n\n")[0],
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -136,6 +140,42 @@ def build_parser() -> argparse.ArgumentParser:
         nargs="+",
         default=["uav_mbs_v0", "surviving_v0", "pursuit_v0"],
         help="columns (default all three)",
+    )
+
+    figure = commands.add_parser("figure", help="draw a figure of the paper, training its runs first")
+    figure.add_argument(
+        "name",
+        metavar="NAME",
+        help="ctc (CTC learning curves), alpha (temperature during training), transfer (other agent "
+        "counts) or p_alpha (target-entropy ratio)",
+    )
+    figure.add_argument("--budget", default="cpu", help=f"config budget: {', '.join(BUDGETS)} (default cpu)")
+    figure.add_argument("--seeds", type=_positive_int, default=3, help="seeds 0..N-1 (default 3)")
+    figure.add_argument(
+        "--folder",
+        default="results",
+        help="results folder; runs go to <folder>/figures/NAME (default results)",
+    )
+    figure.add_argument("--jobs", type=_positive_int, default=1, help="training processes at a time")
+    figure.add_argument(
+        "--out", help="PNG file (default <folder>/figures/NAME.png); .csv and .json beside it"
+    )
+    figure.add_argument(
+        "--presets",
+        nargs="+",
+        help="methods (default: ctc HGAT models and twins, transfer Table 1, alpha and p_alpha soft_hgrn)",
+    )
+    figure.add_argument(
+        "--ratios",
+        nargs="+",
+        type=float,
+        help="p_alpha: target-entropy ratios (default 0.05 0.1 0.2 0.3 0.5)",
+    )
+    figure.add_argument(
+        "--threads", type=_positive_int, help="torch threads per process (default 1 if jobs > 1)"
+    )
+    figure.add_argument(
+        "--save-freq", type=_positive_int, help="checkpoint every this many agent-steps (killed runs resume)"
     )
     return parser
 
@@ -244,7 +284,34 @@ def _reproduce(args: argparse.Namespace) -> int:
     return 0
 
 
-COMMANDS = {"train": _train, "evaluate": _evaluate, "render": _render, "reproduce": _reproduce}
+def _figure(args: argparse.Namespace) -> int:
+    from sb3_hgrn.experiments.figures import make_figure
+
+    failed = make_figure(
+        args.name,
+        args.budget,
+        n_seeds=args.seeds,
+        folder=args.folder,
+        jobs=args.jobs,
+        out=args.out,
+        presets=args.presets,
+        ratios=args.ratios,
+        threads=args.threads,
+        save_freq=args.save_freq,
+    )
+    if failed:
+        print(f"{len(failed)} run(s) failed: " + ", ".join(job.label() for job in failed))
+        return 1
+    return 0
+
+
+COMMANDS = {
+    "train": _train,
+    "evaluate": _evaluate,
+    "render": _render,
+    "reproduce": _reproduce,
+    "figure": _figure,
+}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

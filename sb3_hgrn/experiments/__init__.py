@@ -4,6 +4,7 @@
   configuration (budget, preset overrides, ``--param`` / ``--env-param``).
 - :mod:`sb3_hgrn.experiments.runs`: train one run into its folder, evaluate and render saved runs.
 - :mod:`sb3_hgrn.experiments.table1`: the paper's Table 1 sweep, resumable, and its tables.
+- :mod:`sb3_hgrn.experiments.figures`: the paper's figures (CTC curves, alpha, transfer, p_alpha).
 """
 
 from sb3_hgrn.experiments.config import ConfigError, RunConfig, load_hyperparams, resolve_config

@@ -53,6 +53,10 @@ class Job:
     seed: int
     folder: Path
 
+    def label(self) -> str:
+        """How the sweep's log names the run."""
+        return f"{self.env} {self.preset} seed {self.seed}"
+
 
 def plan_jobs(root: Path, envs: Sequence[str], presets: Sequence[str], seeds: Sequence[int]) -> list[Job]:
     """All runs, seed by seed (a partial sweep then covers the whole table with its first seeds)."""
@@ -157,6 +161,38 @@ def run_sweep(
         f"Table 1, budget {budget}: {len(all_jobs)} runs, {len(all_jobs) - len(todo)} already done, "
         f"{len(todo)} to run, {jobs} at a time"
     )
+    failed = run_jobs(
+        todo,
+        lambda job: train_command(job, budget, root, threads, save_freq),
+        jobs,
+        threads,
+        log,
+        on_finished=lambda: write_tables(results, budget, envs, presets, seeds),
+    )
+    write_tables(results, budget, envs, presets, seeds)
+    log(f"Wrote {results / 'table1.csv'} and {results / 'table1.md'}")
+    return failed
+
+
+def run_jobs(
+    todo: Sequence[Job],
+    command: Callable[[Job], list[str]],
+    jobs: int = 1,
+    threads: int | None = None,
+    log: Callable[[str], None] = _print,
+    on_finished: Callable[[], object] | None = None,
+) -> list[Job]:
+    """Run ``command(job)`` for every job of ``todo`` as its own process, ``jobs`` at a time.
+
+    Each process writes its output to its folder's ``train.log``. A job succeeds when its process
+    exits with status 0 and leaves a complete ``eval.json``; a failed one is logged with the end of
+    its log and the others go on.
+
+    :param threads: cap of the children's OpenMP / MKL threads (``None``: left as they are).
+    :param on_finished: called after every finished job, and when interrupted (e.g. to rewrite tables).
+    :return: the jobs that failed.
+    """
+    todo = list(todo)
     failed: list[Job] = []
     running: list[tuple[Job, subprocess.Popen, TextIO, float]] = []
     finished = 0
@@ -167,10 +203,7 @@ def run_sweep(
                 job.folder.mkdir(parents=True, exist_ok=True)
                 log_file = open(job.folder / LOG_FILE, "w", encoding="utf-8")  # noqa: SIM115
                 process = subprocess.Popen(
-                    train_command(job, budget, root, threads, save_freq),
-                    stdout=log_file,
-                    stderr=subprocess.STDOUT,
-                    env=_child_env(threads),
+                    command(job), stdout=log_file, stderr=subprocess.STDOUT, env=_child_env(threads)
                 )
                 running.append((job, process, log_file, time.time()))
             time.sleep(0.2)
@@ -183,7 +216,7 @@ def run_sweep(
                 finished += 1
                 done = read_eval(job.folder)
                 total = finished + len(todo) + len(running)
-                label = f"[{finished}/{total}] {job.env} {job.preset} seed {job.seed}"
+                label = f"[{finished}/{total}] {job.label()}"
                 if process.returncode == 0 and done is not None:
                     log(
                         f"{label}: team return {done['mean']:.1f} +- {done['std']:.1f} "
@@ -195,16 +228,16 @@ def run_sweep(
                         f"{label}: FAILED (exit {process.returncode}); see {job.folder / LOG_FILE}:\n"
                         + _tail(job.folder / LOG_FILE)
                     )
-                write_tables(results, budget, envs, presets, seeds)
+                if on_finished is not None:
+                    on_finished()
     except KeyboardInterrupt:
         for _, process, log_file, _ in running:
             process.terminate()
             process.wait()
             log_file.close()
-        write_tables(results, budget, envs, presets, seeds)
+        if on_finished is not None:
+            on_finished()
         raise
-    write_tables(results, budget, envs, presets, seeds)
-    log(f"Wrote {results / 'table1.csv'} and {results / 'table1.md'}")
     return failed
 
 
