@@ -88,7 +88,7 @@ def test_transfer_and_p_alpha_points(drawn):
 def test_drawing_again_skips_finished_runs(drawn):
     folder = drawn[0]
     runs = sorted((folder / "figures" / "ctc").glob("ctc_v0/*/seed_*/eval.json"))
-    transfer = next((folder / "figures" / "transfer").glob("*/*/seed_0/transfer.json"))
+    transfer = next((folder / "table1").glob("surviving_v0/*/seed_0/transfer.json"))  # Table 1's runs
     before = [path.stat().st_mtime_ns for path in [*runs, transfer]]
     for name in ("ctc", "transfer"):
         status, output = run_figure(name, folder)

@@ -131,6 +131,13 @@ def ratio_root(root: Path, ratio: float) -> Path:
     return root / f"ratio_{ratio:g}"
 
 
+def figure_root(folder: str | os.PathLike, name: str) -> Path:
+    """Where figure ``name`` keeps its runs: ``<folder>/figures/<name>``, except the transfer figure,
+    whose runs are Table 1's Surviving runs (the same budget, presets and seeds) in ``<folder>/table1``,
+    so ``reproduce table1`` and ``figure transfer`` share them."""
+    return Path(folder) / "table1" if name == "transfer" else Path(folder) / "figures" / name
+
+
 def plan_figure(
     name: str, root: Path, presets: Sequence[str], seeds: Sequence[int], ratios: Sequence[float]
 ) -> list[FigureJob]:
@@ -198,7 +205,7 @@ def make_figure(
     if threads is None and jobs > 1:
         threads = 1
     out = Path(out) if out is not None else Path(folder) / "figures" / f"{name}.png"
-    all_jobs = plan_figure(name, Path(folder) / "figures" / name, presets, list(range(n_seeds)), ratios)
+    all_jobs = plan_figure(name, figure_root(folder, name), presets, list(range(n_seeds)), ratios)
     failed = train_missing(name, budget, all_jobs, jobs, threads, save_freq, log)
     done = [job for job in all_jobs if read_eval(job.folder) is not None]
     if not done:
