@@ -276,12 +276,7 @@ def _reproduce(args: argparse.Namespace) -> int:
         threads=args.threads,
         save_freq=args.save_freq,
     )
-    if failed:
-        print(
-            f"{len(failed)} run(s) failed: " + ", ".join(f"{j.env}/{j.preset}/seed_{j.seed}" for j in failed)
-        )
-        return 1
-    return 0
+    return _report_failures(failed)
 
 
 def _figure(args: argparse.Namespace) -> int:
@@ -299,10 +294,14 @@ def _figure(args: argparse.Namespace) -> int:
         threads=args.threads,
         save_freq=args.save_freq,
     )
+    return _report_failures(failed)
+
+
+def _report_failures(failed: list) -> int:
+    """Print the runs that failed; the exit status: 1 if any failed, else 0."""
     if failed:
         print(f"{len(failed)} run(s) failed: " + ", ".join(job.label() for job in failed))
-        return 1
-    return 0
+    return 1 if failed else 0
 
 
 COMMANDS = {

@@ -68,6 +68,7 @@ class GraphParallelEnv(ParallelEnv):
     max_neighbors: int
     render_mode: str | None = None
     _window: PygameWindow | None = None
+    _neighbor_cache: np.ndarray | None = None
 
     # --- array API, implemented by subclasses -------------------------------------------------
     def reset_arrays(self, seed: int | None = None, options: dict | None = None) -> np.ndarray:
@@ -88,8 +89,18 @@ class GraphParallelEnv(ParallelEnv):
     def neighbors(self) -> np.ndarray:
         """Current communication graph: ``(n_agents, max_neighbors)`` int64 agent indices.
 
-        Row ``i`` starts with ``i`` itself, then its neighbours; unused entries are ``-1``.
+        Row ``i`` starts with ``i`` itself, then its neighbours; unused entries are ``-1``. Computed by
+        :meth:`_neighbor_lists` at most once per step (subclasses set ``_neighbor_cache = None`` when
+        agents move) and returned read-only.
         """
+        if self._neighbor_cache is None:
+            graph = self._neighbor_lists()
+            graph.flags.writeable = False
+            self._neighbor_cache = graph
+        return self._neighbor_cache
+
+    def _neighbor_lists(self) -> np.ndarray:
+        """The communication graph of the current state (see :meth:`neighbors`)."""
         raise NotImplementedError
 
     def _draw(self) -> np.ndarray:

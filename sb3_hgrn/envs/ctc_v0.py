@@ -245,7 +245,6 @@ class TreasureCollectionEnv(GraphParallelEnv):
         self._delivered = np.zeros(2, dtype=np.int64)
         self._steps = 0
         self._episode_running = False
-        self._neighbor_cache: np.ndarray | None = None
 
     # --- construction helpers -------------------------------------------------------------------
     def _build_tables(self) -> None:
@@ -421,16 +420,12 @@ class TreasureCollectionEnv(GraphParallelEnv):
             team_info,
         )
 
-    def neighbors(self) -> np.ndarray:
+    def _neighbor_lists(self) -> np.ndarray:
         """Agents of all groups within Chebyshev distance ``comm_range``: ``(n_agents, max_neighbors)`` int64.
 
         Row ``i`` is ``i`` itself, then its neighbours nearest first (ties by lower index); ``-1`` pads.
-        The array is computed once per step and returned read-only.
         """
-        if self._neighbor_cache is None:
-            self._neighbor_cache = grid_neighbors(self.agent_cells(), self.comm_range, self.max_neighbors)
-            self._neighbor_cache.flags.writeable = False
-        return self._neighbor_cache
+        return grid_neighbors(self.agent_cells(), self.comm_range, self.max_neighbors)
 
     # --- state read-out (analysis, case studies) ------------------------------------------------
     def agent_cells(self) -> np.ndarray:

@@ -169,7 +169,6 @@ class PursuitEnv(GraphParallelEnv):
         self._steps = 0
         self._episode_tags = 0
         self._episode_running = False
-        self._neighbor_cache: np.ndarray | None = None
         self._cell_cache: dict[str, np.ndarray] = {}
 
     def _check_model_controller(self) -> int:
@@ -274,18 +273,12 @@ class PursuitEnv(GraphParallelEnv):
             team_info,
         )
 
-    def neighbors(self) -> np.ndarray:
+    def _neighbor_lists(self) -> np.ndarray:
         """Learners within Euclidean distance ``comm_range``: ``(n_agents, max_neighbors)`` int64.
 
         Row ``i`` is ``i`` itself, then its neighbours nearest first (ties by lower index); ``-1`` pads.
-        The array is computed once per step and returned read-only.
         """
-        if self._neighbor_cache is None:
-            self._neighbor_cache = grid_neighbors(
-                self.agent_cells(), self.comm_range, self.max_neighbors, "euclidean"
-            )
-            self._neighbor_cache.flags.writeable = False
-        return self._neighbor_cache
+        return grid_neighbors(self.agent_cells(), self.comm_range, self.max_neighbors, "euclidean")
 
     # --- state read-out (analysis, tests) -------------------------------------------------------
     def predator_cells(self) -> np.ndarray:

@@ -226,7 +226,6 @@ class UAVMBSEnv(GraphParallelEnv):
         self._covered_steps = np.zeros(n_users, dtype=np.int64)
         self._steps = 0
         self._episode_running = False
-        self._neighbor_cache: np.ndarray | None = None
 
     # --- construction helpers -------------------------------------------------------------------
     def _build_tables(self) -> None:
@@ -353,19 +352,13 @@ class UAVMBSEnv(GraphParallelEnv):
             self._team_info(float(energies.mean())),
         )
 
-    def neighbors(self) -> np.ndarray:
+    def _neighbor_lists(self) -> np.ndarray:
         """UAVs within ``comm_range`` cells (Euclidean): ``(n_uavs, max_neighbors)`` int64.
 
         Row ``i`` is ``i`` itself, then its neighbours nearest first (ties by lower index), cut to
-        ``max_neighbors`` entries; ``-1`` pads. The array is computed once per step and returned
-        read-only.
+        ``max_neighbors`` entries; ``-1`` pads.
         """
-        if self._neighbor_cache is None:
-            self._neighbor_cache = grid_neighbors(
-                self._cells, self.comm_range, self.max_neighbors, metric="euclidean"
-            )
-            self._neighbor_cache.flags.writeable = False
-        return self._neighbor_cache
+        return grid_neighbors(self._cells, self.comm_range, self.max_neighbors, metric="euclidean")
 
     # --- state read-out (analysis, case studies) ------------------------------------------------
     def uav_positions(self) -> np.ndarray:
