@@ -12,7 +12,7 @@ import pytest
 import yaml
 from PIL import Image
 
-from sb3_hgrn import SoftHGRN, make_graph_vec_env
+from sb3_hgrn import RandomGraphPolicy, SoftHGRN, evaluate_graph_policy, make_graph_vec_env
 from sb3_hgrn.cli import main
 from sb3_hgrn.common.vec_env import REGISTERED_ENVS
 from sb3_hgrn.experiments.config import (
@@ -20,10 +20,11 @@ from sb3_hgrn.experiments.config import (
     ConfigError,
     load_hyperparams,
     parse_assignments,
+    random_policy_config,
     resolve_config,
 )
 from sb3_hgrn.experiments.paper import PAPER_TABLE1, TABLE1_ENVS
-from sb3_hgrn.experiments.runs import EpsilonRandomPolicy, make_env
+from sb3_hgrn.experiments.runs import EpsilonRandomPolicy, evaluate_random_policy, make_env, read_eval
 from sb3_hgrn.experiments.table1 import write_tables
 from sb3_hgrn.presets import TABLE1, make_model
 
@@ -222,25 +223,52 @@ def test_reproduce_table1_writes_tables_and_resumes(tmp_path):
     assert [(row["env"], row["preset"]) for row in rows] == [
         ("surviving_v0", "dqn"),
         ("surviving_v0", "soft_hgrn"),
+        ("surviving_v0", "random"),  # the untrained anchor
     ]
     for row in rows:
-        assert row["seeds_done"] == "1" and row["eval_episodes"] == "2" and row["agent_steps"] == "1200"
-        assert row["env_steps"] == "200" and float(row["wall_time_s"]) > 0 and row["mean"] != ""
+        trained = row["preset"] != "random"
+        assert row["seeds_done"] == "1" and row["eval_episodes"] == "2"
+        assert row["agent_steps"] == ("1200" if trained else "0") and row["env_steps"] == (
+            "200" if trained else "0"
+        )
+        assert float(row["wall_time_s"]) > 0 and row["mean"] != ""
     table = (tmp_path / "table1.md").read_text()
     assert "budget `ci`" in table and "smaller than the paper's" in table and "| Soft-HGRN | " in table
     assert "194 +- 41" in table and "-7453 +- 74" in table  # the paper's figures beside ours
+    assert f"| Random | {float(rows[2]['mean']):.1f} | - |" in table and "| 1,200 | 200 | 2 |" in table
 
     runs = tmp_path / "table1" / "surviving_v0"
     kept = (runs / "dqn" / "seed_0" / "eval.json").stat().st_mtime_ns
+    anchor = (runs / "random" / "seed_0" / "eval.json").stat().st_mtime_ns
     (runs / "soft_hgrn" / "seed_0" / "eval.json").unlink()
     done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=300)
     assert done.returncode == 0, done.stdout + done.stderr
     assert "1 already done, 1 to run" in done.stdout and "soft_hgrn seed 0" in done.stdout
     assert "dqn seed 0" not in done.stdout.split("to run")[1]
     assert (runs / "dqn" / "seed_0" / "eval.json").stat().st_mtime_ns == kept
+    assert (runs / "random" / "seed_0" / "eval.json").stat().st_mtime_ns == anchor
     assert (runs / "soft_hgrn" / "seed_0" / "eval.json").exists()
 
     rows = write_tables(tmp_path, "ci", ["surviving_v0"], ["dqn", "dgn"], [0, 1])
     assert rows[1]["mean"] is None and rows[0]["seeds_done"] == 1
     table = (tmp_path / "table1.md").read_text()
     assert "| DGN | - | -286 +- 67 |" in table and "(1/2)" in table
+
+
+def test_random_anchor_follows_the_evaluation_protocol(tmp_path):
+    config = random_policy_config("surviving_v0", "ci", seed=3)
+    assert config.preset == "random" and config.total_timesteps == 0 and config.hyperparams == {}
+    done = evaluate_random_policy(config, tmp_path / "anchor")
+    assert read_eval(tmp_path / "anchor") == done
+    assert done["n_episodes"] == config.eval_episodes and done["agent_steps"] == 0 and done["budget"] == "ci"
+
+    # the same episodes as a trained run's evaluation: env copies seeded seed + 1000
+    env = make_graph_vec_env(
+        "surviving_v0", n_envs=config.eval_n_envs, seed=3 + 1000, env_kwargs=config.env_kwargs
+    )
+    returns, _ = evaluate_graph_policy(
+        RandomGraphPolicy(env, seed=3), env, n_eval_episodes=config.eval_episodes, return_episode_rewards=True
+    )
+    assert done["returns"] == pytest.approx(returns)
+    with pytest.raises(ConfigError, match="Unknown budget"):
+        random_policy_config("surviving_v0", "nope")

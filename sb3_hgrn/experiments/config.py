@@ -43,6 +43,8 @@ BUDGET_FIELDS = {
     "description", "env_kwargs", "n_envs", "eval_n_envs", "total_timesteps", "eval_episodes",
     "eval_epsilons", "paper",
 }  # fmt: skip
+RANDOM_POLICY = "random"
+"""Run name of the uniformly random policy (evaluated without training, as the tables' anchor)."""
 RESERVED_PARAMS = {"policy", "env", "seed", "verbose", "tensorboard_log", "device", "_init_setup_model"}
 """Algorithm arguments the runner sets itself (``--seed``, ``--verbose``, ``--device``)."""
 
@@ -213,11 +215,35 @@ def resolve_config(
         hyperparams = merge(hyperparams, layer or {})
     hyperparams = merge(hyperparams, params or {})
     check_params(preset, hyperparams)
+    if timesteps is not None and timesteps < 1:
+        raise ConfigError(f"--timesteps must be a positive number of agent-steps, got {timesteps}.")
+    total_timesteps = timesteps if timesteps is not None else section["total_timesteps"]
+    return _budget_config(env, preset, budget, seed, total_timesteps, hyperparams, env_params)
+
+
+def random_policy_config(env: str, budget: str = "cpu", seed: int = 0) -> RunConfig:
+    """The evaluation settings of ``budget`` for the uniformly random policy (preset ``"random"``):
+    no training and no algorithm arguments; the anchor row of the Table 1 sweep."""
+    check_env_name(env)
+    check_budget_name(budget)
+    return _budget_config(env, RANDOM_POLICY, budget, seed, 0, {}, None)
+
+
+def _budget_config(
+    env: str,
+    preset: str,
+    budget: str,
+    seed: int,
+    total_timesteps: int,
+    hyperparams: dict[str, Any],
+    env_params: dict[str, Any] | None,
+) -> RunConfig:
+    """A :class:`RunConfig` with the env sizes and evaluation settings of ``env``'s ``budget`` section."""
+    config = load_hyperparams(env)
+    section = config["budgets"][budget]
     env_kwargs = merge(
         merge(config.get("env_kwargs") or {}, section.get("env_kwargs") or {}), env_params or {}
     )
-    if timesteps is not None and timesteps < 1:
-        raise ConfigError(f"--timesteps must be a positive number of agent-steps, got {timesteps}.")
     return RunConfig(
         env=env,
         preset=preset,
@@ -226,7 +252,7 @@ def resolve_config(
         env_kwargs=env_kwargs,
         n_envs=int(section["n_envs"]),
         eval_n_envs=int(section.get("eval_n_envs", section["n_envs"])),
-        total_timesteps=int(timesteps if timesteps is not None else section["total_timesteps"]),
+        total_timesteps=int(total_timesteps),
         eval_episodes=int(section["eval_episodes"]),
         eval_epsilons=[float(eps) for eps in section.get("eval_epsilons") or []],
         paper=bool(section.get("paper", False)),

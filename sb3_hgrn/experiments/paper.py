@@ -12,7 +12,7 @@ PRESET_TITLES = {
     "dqn": "DQN", "commnet": "CommNet", "maac": "MAAC", "dgn": "DGN",
     "soft_hgrn": "Soft-HGRN", "soft_hgrn-G": "Soft-HGRN -G", "soft_hgrn-R": "Soft-HGRN -R",
     "soft_hgrn-S": "Soft-HGRN -S", "sac_hgrn": "SAC-HGRN", "sac_hgrn-G": "SAC-HGRN -G",
-    "sac_hgrn-R": "SAC-HGRN -R", "sac_hgrn-S": "SAC-HGRN -S",
+    "sac_hgrn-R": "SAC-HGRN -R", "sac_hgrn-S": "SAC-HGRN -S", "random": "Random",
 }  # fmt: skip
 
 PAPER_TABLE1: dict[str, dict[str, tuple[float, float]]] = {

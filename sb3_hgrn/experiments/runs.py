@@ -27,7 +27,7 @@ import numpy as np
 import yaml
 from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback
 
-from sb3_hgrn.common.evaluation import evaluate_graph_policy
+from sb3_hgrn.common.evaluation import RandomGraphPolicy, evaluate_graph_policy
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
 from sb3_hgrn.common.vec_env import GraphVecEnv, make_graph_vec_env
 from sb3_hgrn.experiments.callbacks import TEAM_RETURNS_FILE, TeamMonitorCallback
@@ -218,6 +218,37 @@ def train_run(
         eval_time_s=round(time.time() - eval_start, 2),
         wall_time_s=round(time.time() - start, 2),
         resumed_from=None if checkpoint is None else checkpoint.name,
+        completed=True,
+    )
+    write_json(folder / EVAL_FILE, results)
+    return results
+
+
+def evaluate_random_policy(config: RunConfig, folder: str | os.PathLike) -> dict[str, Any]:
+    """Evaluate uniformly random valid actions on the evaluation envs of ``config`` (as a trained
+    run's are: ``eval_n_envs`` copies seeded ``seed + 1000``, ``eval_episodes`` team episodes) and
+    write ``folder/eval.json``; the anchor a table's learned policies are read against.
+
+    :return: the contents of ``eval.json``.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    start = time.time()
+    env = make_env(config, config.eval_n_envs, config.seed + EVAL_SEED_OFFSET)
+    try:
+        results = evaluate_model(RandomGraphPolicy(env, seed=config.seed), env, config.eval_episodes, False)
+        n_agents = int(env.n_agents)
+    finally:
+        env.close()
+    results.update(
+        env=config.env,
+        preset=config.preset,
+        budget=config.budget,
+        seed=config.seed,
+        agent_steps=0,
+        env_steps=0,
+        n_agents=n_agents,
+        wall_time_s=round(time.time() - start, 2),
         completed=True,
     )
     write_json(folder / EVAL_FILE, results)

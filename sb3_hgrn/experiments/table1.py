@@ -2,8 +2,9 @@
 
 Runs go to ``<folder>/table1/<env>/<preset>/seed_<seed>/`` (see :mod:`sb3_hgrn.experiments.runs`);
 a run whose folder holds a complete ``eval.json`` is skipped, so a killed sweep resumes where it
-stopped. After every finished run the tables ``<folder>/table1.csv`` and ``<folder>/table1.md`` are
-rewritten from the run folders.
+stopped. Each (env, seed) also gets a uniformly random policy evaluated the same way, without
+training (``<env>/random/seed_<seed>/``), as the tables' anchor row. After every finished run the
+tables ``<folder>/table1.csv`` and ``<folder>/table1.md`` are rewritten from the run folders.
 """
 
 from __future__ import annotations
@@ -21,11 +22,13 @@ from typing import Any, TextIO
 import numpy as np
 
 from sb3_hgrn.experiments.config import (
+    RANDOM_POLICY,
     ConfigError,
     check_budget_name,
     check_env_name,
     check_preset_name,
     load_hyperparams,
+    random_policy_config,
 )
 from sb3_hgrn.experiments.paper import (
     ENV_TITLES,
@@ -36,7 +39,7 @@ from sb3_hgrn.experiments.paper import (
     PRESET_TITLES,
     TABLE1_ENVS,
 )
-from sb3_hgrn.experiments.runs import read_eval, run_folder
+from sb3_hgrn.experiments.runs import evaluate_random_policy, read_eval, run_folder
 from sb3_hgrn.presets import TABLE1
 
 LOG_FILE = "train.log"
@@ -157,6 +160,7 @@ def run_sweep(
     seeds = list(range(n_seeds))
     all_jobs = plan_jobs(root, envs, presets, seeds)
     todo = [job for job in all_jobs if read_eval(job.folder) is None]
+    evaluate_random_anchors(root, budget, envs, seeds, log)
     log(
         f"Table 1, budget {budget}: {len(all_jobs)} runs, {len(all_jobs) - len(todo)} already done, "
         f"{len(todo)} to run, {jobs} at a time"
@@ -172,6 +176,18 @@ def run_sweep(
     write_tables(results, budget, envs, presets, seeds)
     log(f"Wrote {results / 'table1.csv'} and {results / 'table1.md'}")
     return failed
+
+
+def evaluate_random_anchors(
+    root: Path, budget: str, envs: Sequence[str], seeds: Sequence[int], log: Callable[[str], None] = _print
+) -> None:
+    """Evaluate the uniformly random policy for every (env, seed) whose anchor run is missing."""
+    for env in envs:
+        for seed in seeds:
+            folder = run_folder(root, env, RANDOM_POLICY, seed)
+            if read_eval(folder) is None:
+                done = evaluate_random_policy(random_policy_config(env, budget, seed), folder)
+                log(f"{env} random policy seed {seed}: team return {done['mean']:.1f} +- {done['std']:.1f}")
 
 
 def run_jobs(
@@ -299,7 +315,7 @@ def write_tables(
 ) -> list[dict[str, Any]]:
     """Write ``table1.csv`` and ``table1.md`` into ``results`` from its run folders."""
     results.mkdir(parents=True, exist_ok=True)
-    rows = collect_rows(results / "table1", envs, presets, seeds)
+    rows = collect_rows(results / "table1", envs, [*presets, RANDOM_POLICY], seeds)
     with open(results / "table1.csv", "w", newline="", encoding="utf-8") as file:
         writer = csv.DictWriter(file, fieldnames=list(rows[0]))
         writer.writeheader()
@@ -342,7 +358,9 @@ def markdown(
         "Evaluation protocol: after training, the plain policy (actions sampled from stochastic "
         "policies, greedy for the deterministic ones: DQN, CommNet, DGN and the -S variants) on fresh env "
         "copies seeded `seed + 1000`; the second table mixes in a uniformly random valid action per agent "
-        f"with probability {COMPARISON_EPSILON} (the authors' code's evaluation mode).",
+        f"with probability {COMPARISON_EPSILON} (the authors' code's evaluation mode). **Random**: uniformly "
+        "random valid actions on the same evaluation episodes, without training (no figure in the paper's "
+        "table).",
         "",
     ]
     if smaller:
@@ -358,7 +376,11 @@ def markdown(
     ]
     for env in envs:
         section = load_hyperparams(env)["budgets"][budget]
-        done = [row for row in rows if row["env"] == env and row["agent_steps"] is not None]
+        done = [
+            row
+            for row in rows
+            if row["env"] == env and row["preset"] != RANDOM_POLICY and row["agent_steps"] is not None
+        ]
         agent_steps = done[0]["agent_steps"] if done else section["total_timesteps"]
         env_steps = f"{done[0]['env_steps']:,}" if done else "-"
         description = section.get("description") or str(section.get("env_kwargs", {}))
@@ -369,7 +391,7 @@ def markdown(
         )
     header = " | ".join(f"{ENV_TITLES.get(env, env)} ours | paper" for env in envs)
     lines += ["", f"| Algorithm | {header} |", "|---|" + "---|---|" * len(envs)]
-    for preset in presets:
+    for preset in [*presets, RANDOM_POLICY]:
         cells = []
         for env in envs:
             row = by_key[(env, preset)]
