@@ -100,6 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
         default=0.0,
         help="probability of a uniformly random valid action per agent (the original's evaluation: 0.3)",
     )
+    evaluate.add_argument(
+        "--actions", action="store_true", help="also print the fraction of agent-steps that took each action"
+    )
     evaluate.add_argument("--n-envs", type=_positive_int, help="env copies (default: the run's eval_n_envs)")
     evaluate.add_argument("--seed", type=int, help="env seed (default: the run's seed + 1000)")
     evaluate.add_argument("--env", help="env of a bare .zip outside a run folder")
@@ -241,6 +244,11 @@ def _evaluate(args: argparse.Namespace) -> int:
         f"team return {results['mean']:.2f} +- {results['std']:.2f} over {results['n_episodes']} episodes "
         f"({mode} actions, epsilon {args.epsilon:g})"
     )
+    if args.actions:
+        used = [
+            f"{action}: {share:.3f}" for action, share in enumerate(results["action_frequencies"]) if share
+        ]
+        print("actions (fraction of agent-steps): " + ", ".join(used))
     return 0
 
 

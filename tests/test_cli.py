@@ -24,7 +24,13 @@ from sb3_hgrn.experiments.config import (
     resolve_config,
 )
 from sb3_hgrn.experiments.paper import PAPER_TABLE1, TABLE1_ENVS
-from sb3_hgrn.experiments.runs import EpsilonRandomPolicy, evaluate_random_policy, make_env, read_eval
+from sb3_hgrn.experiments.runs import (
+    EpsilonRandomPolicy,
+    evaluate_model,
+    evaluate_random_policy,
+    make_env,
+    read_eval,
+)
 from sb3_hgrn.experiments.table1 import write_tables
 from sb3_hgrn.presets import TABLE1, make_model
 
@@ -98,6 +104,26 @@ def test_evaluate_and_render(surviving_run, tmp_path, capsys):
     )
     with Image.open(gif) as image:
         assert image.n_frames >= 3  # Pillow merges identical consecutive frames
+
+
+class ConstantPolicy:
+    """Action 3 for every agent."""
+
+    def predict(self, observation, state=None, episode_start=None, deterministic=False):
+        return np.full(len(observation["obs"]), 3), state
+
+
+def test_evaluation_counts_the_actions_taken(surviving_run, capsys):
+    env = make_graph_vec_env("surviving_v0", n_envs=2, seed=0, env_kwargs={"n_agents": 5, "max_cycles": 20})
+    assert evaluate_model(ConstantPolicy(), env, 2, True)["action_frequencies"] == [0.0, 0.0, 0.0, 1.0, 0.0]
+    shares = evaluate_model(RandomGraphPolicy(env, seed=0), env, 4, False)["action_frequencies"]
+    assert sum(shares) == pytest.approx(1.0) and min(shares) > 0.12  # 400 agent-steps, 0.2 each expected
+    assert main(["evaluate", str(surviving_run), "--episodes", "2", "--actions", "--threads", "1"]) == 0
+    printed = capsys.readouterr().out.splitlines()[-1]
+    assert printed.startswith("actions (fraction of agent-steps): ")
+    assert sum(float(item.split(": ")[1]) for item in printed.split("): ")[1].split(", ")) == pytest.approx(
+        1, abs=0.01
+    )
 
 
 def test_train_refuses_a_completed_run_and_resumes_from_checkpoint(surviving_run, capsys):

@@ -326,10 +326,42 @@ class EpsilonRandomPolicy:
         return np.where(explore, random_actions, actions), state
 
 
+class ActionCounter:
+    """A policy's ``predict`` that also counts the actions it returns, per action index.
+
+    :param model: anything with a graph model's ``predict``.
+    :param n_actions: size of the (padded) action space.
+    """
+
+    def __init__(self, model: Any, n_actions: int):
+        self.model = model
+        self.counts = np.zeros(n_actions, dtype=np.int64)
+
+    def predict(
+        self,
+        observation: dict[str, np.ndarray],
+        state: Any = None,
+        episode_start: Any = None,
+        deterministic: bool = False,
+    ) -> tuple[np.ndarray, Any]:
+        """The wrapped policy's actions ``(n_slots,)``, counted."""
+        actions, state = self.model.predict(
+            observation, state=state, episode_start=episode_start, deterministic=deterministic
+        )
+        self.counts += np.bincount(np.asarray(actions).ravel(), minlength=len(self.counts))
+        return actions, state
+
+    def frequencies(self) -> list[float]:
+        """Fraction of all counted agent-steps that took each action (zeros before any step)."""
+        return (self.counts / max(1, int(self.counts.sum()))).tolist()
+
+
 def evaluate_model(model: Any, env: GraphVecEnv, n_episodes: int, deterministic: bool) -> dict[str, Any]:
-    """Team-return figures of ``n_episodes`` episodes: mean, std, per-episode returns and lengths."""
+    """Team-return figures of ``n_episodes`` episodes: mean, std, per-episode returns and lengths, and
+    the fraction of agent-steps that took each action (over every step the evaluation ran)."""
+    counter = ActionCounter(model, int(env.action_space.n))
     returns, lengths = evaluate_graph_policy(
-        model, env, n_eval_episodes=n_episodes, deterministic=deterministic, return_episode_rewards=True
+        counter, env, n_eval_episodes=n_episodes, deterministic=deterministic, return_episode_rewards=True
     )
     return {
         "mean": float(np.mean(returns)),
@@ -339,6 +371,7 @@ def evaluate_model(model: Any, env: GraphVecEnv, n_episodes: int, deterministic:
         "n_episodes": len(returns),
         "deterministic": bool(deterministic),
         "epsilon": float(getattr(model, "epsilon", 0.0)),
+        "action_frequencies": counter.frequencies(),
     }
 
 
