@@ -218,7 +218,7 @@ def resolve_config(
     if timesteps is not None and timesteps < 1:
         raise ConfigError(f"--timesteps must be a positive number of agent-steps, got {timesteps}.")
     total_timesteps = timesteps if timesteps is not None else section["total_timesteps"]
-    return _budget_config(env, preset, budget, seed, total_timesteps, hyperparams, env_params)
+    return _budget_config(config, env, preset, budget, seed, total_timesteps, hyperparams, env_params)
 
 
 def random_policy_config(env: str, budget: str = "cpu", seed: int = 0) -> RunConfig:
@@ -226,10 +226,11 @@ def random_policy_config(env: str, budget: str = "cpu", seed: int = 0) -> RunCon
     no training and no algorithm arguments; the anchor row of the Table 1 sweep."""
     check_env_name(env)
     check_budget_name(budget)
-    return _budget_config(env, RANDOM_POLICY, budget, seed, 0, {}, None)
+    return _budget_config(load_hyperparams(env), env, RANDOM_POLICY, budget, seed, 0, {}, None)
 
 
 def _budget_config(
+    config: dict[str, Any],
     env: str,
     preset: str,
     budget: str,
@@ -238,8 +239,8 @@ def _budget_config(
     hyperparams: dict[str, Any],
     env_params: dict[str, Any] | None,
 ) -> RunConfig:
-    """A :class:`RunConfig` with the env sizes and evaluation settings of ``env``'s ``budget`` section."""
-    config = load_hyperparams(env)
+    """A :class:`RunConfig` with the env sizes and evaluation settings of the ``budget`` section of
+    ``env``'s config file ``config``."""
     section = config["budgets"][budget]
     env_kwargs = merge(
         merge(config.get("env_kwargs") or {}, section.get("env_kwargs") or {}), env_params or {}
