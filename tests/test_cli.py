@@ -257,7 +257,7 @@ def test_reproduce_table1_writes_tables_and_resumes(tmp_path):
         assert row["agent_steps"] == ("1200" if trained else "0") and row["env_steps"] == (
             "200" if trained else "0"
         )
-        assert float(row["wall_time_s"]) > 0 and row["mean"] != ""
+        assert float(row["wall_time_s"]) >= (0.01 if trained else 0.0) and row["mean"] != ""
     table = (tmp_path / "table1.md").read_text()
     assert "budget `ci`" in table and "smaller than the paper's" in table and "| Soft-HGRN | " in table
     assert "194 +- 41" in table and "-7453 +- 74" in table  # the paper's figures beside ours
