@@ -1,6 +1,6 @@
 """Throughput and memory of Soft-HGRN on Surviving: env, collection, updates, replay storage.
 
-Run: python benchmarks/throughput.py [--agents 100] [--sizes default paper] [--buffer-rows 50000]
+Run: python benchmarks/throughput.py [--agents 100] [--sizes default paper paper-bf16] [--buffer-rows 50000]
 
 Prints, for Surviving with ``--agents`` agents:
 - env steps/s with random actions (array API with the graph, the graph VecEnv, the PettingZoo dict API);
@@ -25,7 +25,11 @@ from sb3_hgrn.common.buffers import GraphReplayBuffer
 from sb3_hgrn.common.hgrn import PAPER_SIZE
 from sb3_hgrn.envs import surviving_v0
 
-SIZES = {"default": {}, "paper": PAPER_SIZE}
+SIZES = {
+    "default": {},
+    "paper": PAPER_SIZE,
+    "paper-bf16": {**PAPER_SIZE, "mixed_precision": True},  # bfloat16 matrix products (HGRN docs)
+}
 
 
 def best_rate(run, count: int, repeats: int = 3) -> float:

@@ -434,3 +434,24 @@ def test_lists_longer_than_the_graph_match_the_dense_reference():
     torch.testing.assert_close(weights[0, 0, :, 10], dense_weights[0, 0, :, 2])
     torch.testing.assert_close(weights[0, 1, :, 16], dense_weights[0, 1, :, 0])
     torch.testing.assert_close(weights.sum(-1), torch.ones(1, 3, 4, dtype=torch.double))
+
+
+@pytest.mark.parametrize("communication", ["hgat", "mean"])
+def test_mixed_precision_matches_float32_within_bfloat16_rounding(communication):
+    torch.manual_seed(0)
+    kwargs = dict(obs_dim=5, n_actions=4, hidden_dim=32, communication=communication, group_n_actions=[4, 2])
+    exact, mixed = HGRN(**kwargs), HGRN(**kwargs, mixed_precision=True)
+    mixed.load_state_dict(exact.state_dict())
+    groups, neighbors = GROUPS.repeat(3, 1), GROUP_NEIGHBORS.repeat(3, 1, 1)
+    obs, hidden = torch.randn(3, 4, 5), torch.randn(3, 4, 32)
+    expected, expected_hidden = exact(obs, neighbors, hidden, groups)
+    out, new_hidden = mixed(obs, neighbors, hidden, groups)
+    assert out.dtype == new_hidden.dtype == torch.float32
+    assert not torch.equal(out, expected)  # the products did run in bfloat16 (8-bit mantissa)
+    torch.testing.assert_close(out, expected, atol=0.03, rtol=0.03)
+    torch.testing.assert_close(new_hidden, expected_hidden, atol=0.03, rtol=0.03)
+    assert (out[:, 2:, 2:] == MASKED_OUTPUT).all()  # masked actions stay exact
+
+    out.sum().backward()
+    for name, parameter in mixed.named_parameters():
+        assert parameter.grad is not None and parameter.grad.dtype == torch.float32, name

@@ -37,6 +37,19 @@ def test_learns_the_neighbour_bit_task_only_with_communication():
     assert returns["none"] <= 20.0
 
 
+def test_learns_the_neighbour_bit_task_with_mixed_precision(tmp_path):
+    model = quick_model(
+        bit_env(), learning_starts=256, batch_size=16, target_entropy_ratio=0.05,
+        policy_kwargs=dict(hidden_dim=32, mixed_precision=True),
+    )  # fmt: skip
+    model.learn(12_000)
+    mean_return, _ = evaluate_graph_policy(model, bit_env(seed=100), n_eval_episodes=16)
+    assert mean_return >= 29.0
+    model.save(tmp_path / "model.zip")
+    loaded = SoftHGRN.load(tmp_path / "model.zip", env=bit_env())
+    assert loaded.policy.q_net.mixed_precision and loaded.policy.network_kwargs["mixed_precision"]
+
+
 def test_predict_threads_recurrent_state_like_recurrent_ppo():
     env = bit_env(n_envs=2)
     model = quick_model(env)

@@ -12,6 +12,7 @@ ever formed.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import warnings
 from collections.abc import Callable, Sequence
@@ -393,7 +394,11 @@ class GraphAttention(nn.Module):
         batch, n_agents, _ = x.shape
         query, key, value = self.project(x, graph)
         segments = graph.segments(self.across_groups)
-        mixed, weights = _NeighborAttention.apply(query, key, value, graph.pattern(self.n_heads), segments)
+        dtype = torch.promote_types(query.dtype, torch.float32)  # bfloat16 under autocast -> float32
+        with torch.autocast(x.device.type, enabled=False):  # the sparse kernels run in full precision
+            mixed, weights = _NeighborAttention.apply(
+                query.to(dtype), key.to(dtype), value.to(dtype), graph.pattern(self.n_heads), segments
+            )
         out = F.relu(self.output(mixed.reshape(batch, n_agents, -1), graph=graph))
         if return_attention:
             return out, graph.list_weights(weights).reshape(batch, n_agents, self.n_heads, -1)
@@ -474,6 +479,10 @@ class HGRN(nn.Module):
     :param recurrent: use a GRUCell on the ``3H`` skip concat; if False the head reads the concat
         directly and the recurrent state has width 0.
     :param group_n_actions: action count of every agent group (``None``: one group).
+    :param mixed_precision: run the dense layers' matrix products in bfloat16 (``torch.autocast``);
+        parameters, attention weights and the returned outputs and state stay float32. Faster at
+        large sizes where the hardware has bfloat16 arithmetic (AVX512-BF16 or AMX, recent GPUs);
+        ``benchmarks/throughput.py --sizes paper paper-bf16`` compares both.
     """
 
     def __init__(
@@ -486,6 +495,7 @@ class HGRN(nn.Module):
         communication: str = "hgat",
         recurrent: bool = True,
         group_n_actions: Sequence[int] | None = None,
+        mixed_precision: bool = False,
     ) -> None:
         super().__init__()
         if communication not in COMMUNICATIONS:
@@ -501,6 +511,7 @@ class HGRN(nn.Module):
         self.obs_dim = obs_dim
         self.hidden_dim = hidden_dim
         self.recurrent = recurrent
+        self.mixed_precision = mixed_precision
         self.n_groups = n_groups = len(group_n_actions)
         self.register_buffer(
             "valid_actions",
@@ -534,15 +545,23 @@ class HGRN(nn.Module):
         """
         self._check_inputs(obs, neighbors, hidden)
         graph = GraphBatch(neighbors, groups, self.n_groups)
-        encoded = self.encoder(obs, graph=graph)
-        hop1 = self.comm1(encoded, graph)
-        hop2 = self.comm2(hop1, graph)
-        features = torch.cat([encoded, hop1, hop2], dim=-1)
-        if self.gru is not None:
-            rows = obs.shape[0] * obs.shape[1]
-            hidden = self.gru(features.reshape(rows, -1), hidden.reshape(rows, -1), graph=graph)
-            features = hidden = hidden.reshape(*obs.shape[:2], -1)
-        out = self.head(features, graph=graph)
+        precision = (
+            torch.autocast(obs.device.type, dtype=torch.bfloat16)
+            if self.mixed_precision
+            else contextlib.nullcontext()
+        )
+        with precision:
+            encoded = self.encoder(obs, graph=graph)
+            hop1 = self.comm1(encoded, graph)
+            hop2 = self.comm2(hop1, graph)
+            features = torch.cat([encoded, hop1, hop2], dim=-1)
+            if self.gru is not None:
+                rows = obs.shape[0] * obs.shape[1]
+                hidden = self.gru(features.reshape(rows, -1), hidden.reshape(rows, -1), graph=graph)
+                features = hidden = hidden.reshape(*obs.shape[:2], -1)
+            out = self.head(features, graph=graph)
+        if self.mixed_precision:
+            out, hidden = out.float(), hidden.float()
         if self.n_groups > 1:
             valid = self.valid_actions[graph.row_groups].reshape(out.shape)
             out = out.masked_fill(~valid, MASKED_OUTPUT)

@@ -49,6 +49,7 @@ class GraphPolicy(BasePolicy):
     :param head_dim: width of one head (``None``: ``hidden_dim // n_heads``).
     :param communication: ``"hgat"`` (graph attention), ``"mean"`` (CommNet mean) or ``"none"``.
     :param recurrent: use the GRU memory.
+    :param mixed_precision: bfloat16 matrix products in the networks (see :class:`HGRN`).
     :param stochastic: sample actions from the policy; ``False`` acts greedily (the ``-S`` variants).
     :param alpha_log_space: learn ``log(alpha)`` instead of the temperature alpha itself.
     :param group_n_actions: action count of every agent group (set by the algorithm from a
@@ -65,6 +66,7 @@ class GraphPolicy(BasePolicy):
         head_dim: int | None = None,
         communication: str = "hgat",
         recurrent: bool = True,
+        mixed_precision: bool = False,
         stochastic: bool = True,
         alpha_log_space: bool = False,
         group_n_actions: list[int] | None = None,
@@ -86,6 +88,7 @@ class GraphPolicy(BasePolicy):
             head_dim=head_dim,
             communication=communication,
             recurrent=recurrent,
+            mixed_precision=mixed_precision,
         )
         if ("group" in observation_space.spaces) != (group_n_actions is not None):
             raise ValueError(
