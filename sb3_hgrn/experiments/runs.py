@@ -289,7 +289,34 @@ def _plain(value: Any) -> Any:
     return value
 
 
-class EpsilonRandomPolicy:
+class PolicyWrapper:
+    """Anything with a graph model's ``predict``, whose actions :meth:`adjust` sees (and may change).
+
+    :param model: anything with a graph model's ``predict``.
+    """
+
+    def __init__(self, model: Any):
+        self.model = model
+
+    def predict(
+        self,
+        observation: dict[str, np.ndarray],
+        state: Any = None,
+        episode_start: Any = None,
+        deterministic: bool = False,
+    ) -> tuple[np.ndarray, Any]:
+        """The wrapped model's actions ``(n_slots,)`` after :meth:`adjust`, and its state."""
+        actions, state = self.model.predict(
+            observation, state=state, episode_start=episode_start, deterministic=deterministic
+        )
+        return self.adjust(observation, np.asarray(actions)), state
+
+    def adjust(self, observation: dict[str, np.ndarray], actions: np.ndarray) -> np.ndarray:
+        """The actions to return instead of the model's ``actions`` ``(n_slots,)``."""
+        raise NotImplementedError
+
+
+class EpsilonRandomPolicy(PolicyWrapper):
     """A model whose action is replaced, per agent with probability ``epsilon``, by a uniformly random
     valid action (within ``obs["action_mask"]`` when present): the original code's evaluation mode.
 
@@ -300,22 +327,13 @@ class EpsilonRandomPolicy:
     def __init__(self, model: Any, epsilon: float, seed: int | None = None):
         if not 0.0 <= epsilon <= 1.0:
             raise ValueError(f"epsilon must lie in [0, 1], got {epsilon}.")
-        self.model = model
+        super().__init__(model)
         self.epsilon = epsilon
         self.n_actions = int(model.action_space.n)
         self.rng = np.random.default_rng(seed)
 
-    def predict(
-        self,
-        observation: dict[str, np.ndarray],
-        state: Any = None,
-        episode_start: Any = None,
-        deterministic: bool = False,
-    ) -> tuple[np.ndarray, Any]:
-        """The model's actions ``(n_slots,)``, each random with probability ``epsilon``."""
-        actions, state = self.model.predict(
-            observation, state=state, episode_start=episode_start, deterministic=deterministic
-        )
+    def adjust(self, observation: dict[str, np.ndarray], actions: np.ndarray) -> np.ndarray:
+        """Each action replaced by a random valid one with probability ``epsilon``."""
         n_slots = len(observation["obs"])
         mask = observation.get("action_mask")
         valid = (
@@ -323,33 +341,24 @@ class EpsilonRandomPolicy:
         )
         random_actions = np.argmax(self.rng.random(valid.shape) * valid, axis=1)  # uniform among valid
         explore = self.rng.random(n_slots) < self.epsilon
-        return np.where(explore, random_actions, actions), state
+        return np.where(explore, random_actions, actions)
 
 
-class ActionCounter:
-    """A policy's ``predict`` that also counts the actions it returns, per action index.
+class ActionCounter(PolicyWrapper):
+    """A model whose actions are counted, per action index.
 
     :param model: anything with a graph model's ``predict``.
     :param n_actions: size of the (padded) action space.
     """
 
     def __init__(self, model: Any, n_actions: int):
-        self.model = model
+        super().__init__(model)
         self.counts = np.zeros(n_actions, dtype=np.int64)
 
-    def predict(
-        self,
-        observation: dict[str, np.ndarray],
-        state: Any = None,
-        episode_start: Any = None,
-        deterministic: bool = False,
-    ) -> tuple[np.ndarray, Any]:
-        """The wrapped policy's actions ``(n_slots,)``, counted."""
-        actions, state = self.model.predict(
-            observation, state=state, episode_start=episode_start, deterministic=deterministic
-        )
-        self.counts += np.bincount(np.asarray(actions).ravel(), minlength=len(self.counts))
-        return actions, state
+    def adjust(self, observation: dict[str, np.ndarray], actions: np.ndarray) -> np.ndarray:
+        """The actions unchanged, counted."""
+        self.counts += np.bincount(actions.ravel(), minlength=len(self.counts))
+        return actions
 
     def frequencies(self) -> list[float]:
         """Fraction of all counted agent-steps that took each action (zeros before any step)."""
