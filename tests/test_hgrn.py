@@ -1,10 +1,12 @@
 """Tests of the HGRN network and its communication layers against dense hand-written references."""
 
 import math
+import traceback
 
 import pytest
 import torch
 import torch.nn.functional as F
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from sb3_hgrn.common.hgrn import (
     HGRN,
@@ -47,16 +49,72 @@ def dense_adjacency(neighbors: torch.Tensor) -> torch.Tensor:
     return adjacency
 
 
-def dense_attention(layer: GraphAttention, x: torch.Tensor, adjacency: torch.Tensor):
-    """Reference output ``(batch, n, out)`` and weights ``(batch, n, heads, n)`` with dense softmax."""
+def dense_attention(
+    layer: GraphAttention, x: torch.Tensor, adjacency: torch.Tensor, groups: torch.Tensor | None = None
+):
+    """Reference output ``(batch, n, out)`` and weights ``(batch, n, heads, n)`` with a dense softmax
+    over the masked ``n x n`` logits of every head. With ``groups`` ``(batch, n)`` every agent goes
+    through its group's copies (receiver: query and output, sender: key and value) and the softmax
+    runs per sender group (HGAT, messages concatenated in group order) or over the own group."""
     batch, n, _ = x.shape
     heads, dim = layer.n_heads, layer.head_dim
-    q, k, v = (F.relu(lin(x)).reshape(batch, n, heads, dim) for lin in (layer.query, layer.key, layer.value))
+    groups = torch.zeros(batch, n, dtype=torch.long, device=x.device) if groups is None else groups
+
+    def by_group(grouped, inputs):
+        outputs = torch.stack([member(inputs) for member in grouped.members])  # (n_groups, batch, n, out)
+        return outputs.gather(0, groups[None, ..., None].expand(1, batch, n, outputs.shape[-1]))[0]
+
+    q, k, v = (
+        F.relu(by_group(lin, x)).reshape(batch, n, heads, dim)
+        for lin in (layer.query, layer.key, layer.value)
+    )
     logits = torch.einsum("bihd,bjhd->bihj", q, k) / math.sqrt(dim)
-    logits = logits.masked_fill(~adjacency.unsqueeze(2), -math.inf)
-    weights = logits.softmax(dim=-1)
-    mixed = torch.einsum("bihj,bjhd->bihd", weights, v).reshape(batch, n, heads * dim)
-    return F.relu(layer.output(mixed)), weights
+    senders = groups.unsqueeze(1)  # (batch, 1, n): group of agent j
+    if layer.across_groups:
+        masks = [adjacency & (senders == group) for group in range(len(layer.query.members))]
+    else:
+        masks = [adjacency & (senders == groups.unsqueeze(2))]
+    weights, messages = 0.0, []
+    for mask in masks:
+        mask = mask.unsqueeze(2)  # (batch, n, 1, n)
+        segment = logits.masked_fill(~mask, -math.inf).where(mask.any(-1, keepdim=True), 0.0)
+        segment = segment.softmax(dim=-1) * mask  # zero for a row without entries in the segment
+        weights = weights + segment
+        messages.append(torch.einsum("bihj,bjhd->bihd", segment, v).reshape(batch, n, heads * dim))
+    return F.relu(by_group(layer.output, torch.cat(messages, dim=-1))), weights
+
+
+def dense_list_weights(weights: torch.Tensor, neighbors: torch.Tensor) -> torch.Tensor:
+    """Dense weights ``(batch, n, heads, n)`` laid out over the lists ``(batch, n, heads, K + 1)``:
+    column 0 the agent itself, ``1 + m`` entry ``m`` if it names another agent for the first time."""
+    batch, n, width = neighbors.shape
+    expected = torch.zeros(*weights.shape[:3], width + 1, dtype=weights.dtype, device=weights.device)
+    for b in range(batch):
+        for i in range(n):
+            expected[b, i, :, 0] = weights[b, i, :, i]
+            seen = {i}
+            for m, j in enumerate(neighbors[b, i].tolist()):
+                if j >= 0 and j not in seen:
+                    expected[b, i, :, m + 1] = weights[b, i, :, j]
+                    seen.add(j)
+    return expected
+
+
+def random_lists(batch: int, n_agents: int, width: int, seed: int) -> torch.Tensor:
+    """Random lists ``(batch, n_agents, width)`` with empty entries, self entries and repeats; agent 0
+    of graph 0 lists nobody, agent 1 only itself (repeatedly), agent 2 lists agent 3 twice first."""
+    generator = torch.Generator().manual_seed(seed)
+    neighbors = torch.randint(-1, n_agents, (batch, n_agents, width), generator=generator)
+    neighbors[0, 0] = -1
+    neighbors[0, 1] = 1
+    neighbors[0, 2, :2] = 3
+    return neighbors
+
+
+DEVICES = [
+    "cpu",
+    pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")),
+]
 
 
 @pytest.fixture
@@ -455,3 +513,203 @@ def test_mixed_precision_matches_float32_within_bfloat16_rounding(communication)
     out.sum().backward()
     for name, parameter in mixed.named_parameters():
         assert parameter.grad is not None and parameter.grad.dtype == torch.float32, name
+
+
+# --- sparse attention: CSR invariants, dense references on random graphs, no host sync -----------
+RANDOM_CASES = [(3, 6, 4), (2, 5, 9)]  # (batch, n_agents, list width); 9 is wider than the graph
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize(("batch", "n_agents", "width"), RANDOM_CASES)
+@pytest.mark.parametrize("n_groups", [1, 2])
+def test_attention_patterns_satisfy_the_csr_invariants(device, batch, n_agents, width, n_groups):
+    """Every CSR tensor the attention builds has sorted, distinct columns in each row (checked by
+    torch), the forward pattern and the transposed one hold the same entries, and the entries are
+    the distinct listed agents: the pattern is exact, not just well formed."""
+    neighbors = random_lists(batch, n_agents, width, seed=n_agents).to(device)
+    groups = torch.randint(0, n_groups, (batch, n_agents), device=device)
+    graph = GraphBatch(neighbors, groups, n_groups)
+    rows = batch * n_agents
+    expected = dense_adjacency(neighbors.cpu())  # (batch, n_agents, n_agents)
+    attended = torch.zeros(rows, rows + graph.targets.shape[1], dtype=torch.bool)
+    attended.scatter_(1, graph.targets.cpu(), graph.mask.cpu())
+    assert torch.equal(attended[:, :rows], torch.block_diag(*expected).reshape(rows, rows))
+    assert not attended[:, rows:].any()  # dummy targets never take part
+    for heads in (1, 3):
+        pattern = graph.pattern(heads)
+        values = torch.randn(pattern.col.numel(), dtype=torch.double, device=device)
+        matrix = torch.sparse_csr_tensor(
+            pattern.crow, pattern.col, values, pattern.shape, check_invariants=True
+        )
+        transposed = torch.sparse_csr_tensor(
+            pattern.crow_t,
+            pattern.col_t,
+            values[pattern.transpose],
+            pattern.shape[::-1],
+            check_invariants=True,
+        )
+        torch.testing.assert_close(transposed.to_dense(), matrix.to_dense().t())
+    layer = GraphAttention(IN_DIM, OUT_DIM, 2, HEAD_DIM, n_groups=n_groups).double().to(device)
+    x = torch.randn(batch, n_agents, IN_DIM, dtype=torch.double, device=device, requires_grad=True)
+    with torch.sparse.check_sparse_tensor_invariants():  # every CSR tensor of forward and backward
+        layer(x, graph).sum().backward()
+    assert torch.isfinite(x.grad).all()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize(("batch", "n_agents", "width"), RANDOM_CASES)
+@pytest.mark.parametrize(("n_groups", "across_groups"), [(1, True), (2, True), (2, False)])
+def test_attention_on_random_graphs_matches_the_dense_reference(
+    device, batch, n_agents, width, n_groups, across_groups
+):
+    """Outputs, list-layout weights and the gradients of inputs and parameters equal a dense masked
+    softmax over the ``n x n`` adjacency (lists as sets) on graphs with empty entries, self entries,
+    repeated neighbours and an agent without neighbours."""
+    torch.manual_seed(n_agents + 10 * n_groups)
+    layer = GraphAttention(IN_DIM, OUT_DIM, 2, HEAD_DIM, n_groups, across_groups).double().to(device)
+    neighbors = random_lists(batch, n_agents, width, seed=batch).to(device)
+    groups = torch.randint(0, n_groups, (batch, n_agents), device=device)
+    x = torch.randn(batch, n_agents, IN_DIM, dtype=torch.double, device=device, requires_grad=True)
+    weight = torch.randn(batch, n_agents, OUT_DIM, dtype=torch.double, device=device)
+    params = [x, *layer.parameters()]
+
+    out, weights = layer(x, GraphBatch(neighbors, groups, n_groups), return_attention=True)
+    grads = torch.autograd.grad((out * weight).sum(), params, allow_unused=True)
+    expected, dense_weights = dense_attention(layer, x, dense_adjacency(neighbors.cpu()).to(device), groups)
+    expected_grads = torch.autograd.grad((expected * weight).sum(), params, allow_unused=True)
+
+    torch.testing.assert_close(out, expected)
+    torch.testing.assert_close(weights, dense_list_weights(dense_weights, neighbors.cpu()))
+    for grad, expected_grad in zip(grads, expected_grads, strict=True):
+        if expected_grad is None:  # a group's key/value that no agent attends to
+            assert grad is None or grad.abs().max() == 0
+        else:
+            torch.testing.assert_close(grad, expected_grad)
+
+
+def test_attention_gradcheck_on_a_random_two_group_graph():
+    torch.manual_seed(0)
+    layer = GraphAttention(IN_DIM, OUT_DIM, 2, HEAD_DIM, n_groups=2).double()
+    graph = GraphBatch(random_lists(2, 5, 9, seed=1), torch.tensor([[0, 1, 0, 1, 1], [1, 1, 0, 0, 0]]), 2)
+    x = torch.randn(2, 5, IN_DIM, dtype=torch.double, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda inp: layer(inp, graph), (x,))
+
+
+def test_a_repeated_neighbour_counts_once():
+    torch.manual_seed(0)
+    layer = GraphAttention(IN_DIM, OUT_DIM, HEADS, HEAD_DIM).double()
+    x = torch.randn(1, 4, IN_DIM, dtype=torch.double)
+    once, once_weights = layer(x, torch.tensor([[[1, 2, -1, -1]] * 4]), return_attention=True)
+    twice, twice_weights = layer(x, torch.tensor([[[1, 2, 1, 2]] * 4]), return_attention=True)
+    torch.testing.assert_close(twice, once)
+    torch.testing.assert_close(twice_weights, once_weights)  # the repeats carry weight 0
+    mean = MeanCommunication(IN_DIM, OUT_DIM).double()
+    torch.testing.assert_close(
+        mean(x, torch.tensor([[[1, 2, 1, 2]] * 4])), mean(x, torch.tensor([[[1, 2]] * 4]))
+    )
+
+
+class _HostSyncRecorder(TorchDispatchMode):
+    """Records the ops that read tensor values on the host (a device synchronisation on CUDA),
+    except those of the CPU-only value check in ``check_neighbors``."""
+
+    SYNCING = {"aten::_local_scalar_dense", "aten::nonzero", "aten::bincount", "aten::masked_select",
+               "aten::_unique2", "aten::unique_consecutive", "aten::unique_dim", "aten::is_nonzero",
+               "aten::equal", "aten::allclose"}  # fmt: skip
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.syncing: list[str] = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        name = func._schema.name
+        indices = args[1] if name in ("aten::index", "aten::index_put", "aten::index_put_") else []
+        bool_index = any(index is not None and index.dtype == torch.bool for index in indices)
+        unsized = (
+            func is torch.ops.aten.repeat_interleave.Tensor and (kwargs or {}).get("output_size") is None
+        )
+        if name in self.SYNCING or bool_index or unsized:
+            if "check_neighbors" not in {frame.name for frame in traceback.extract_stack()}:
+                self.syncing.append(str(func))
+        return func(*args, **(kwargs or {}))
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("communication", ["hgat", "mean"])
+def test_homogeneous_forward_and_backward_do_not_read_values_on_the_host(device, communication):
+    torch.manual_seed(0)
+    net = HGRN(obs_dim=5, n_actions=4, hidden_dim=16, communication=communication).to(device)
+    obs, neighbors, hidden = (tensor.to(device) for tensor in inputs(net, max_neighbors=9))
+    if device == "cpu":
+        recorder = _HostSyncRecorder()
+        with recorder:
+            out, new_hidden = net(obs, GraphBatch(neighbors), hidden)
+            (out.sum() + new_hidden.sum()).backward()
+        assert recorder.syncing == []
+    else:
+        torch.cuda.set_sync_debug_mode("error")  # raises on a synchronising CUDA call
+        try:
+            out, new_hidden = net(obs, GraphBatch(neighbors), hidden)
+            (out.sum() + new_hidden.sum()).backward()
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+
+
+def test_the_recorder_sees_host_reads():
+    recorder = _HostSyncRecorder()
+    with recorder:
+        tensor = torch.arange(4)
+        int(tensor.max())
+        tensor[tensor > 1].nonzero()
+        torch.repeat_interleave(tensor)
+        torch.repeat_interleave(tensor, output_size=6)  # sized: no host read
+    assert recorder.syncing == [
+        "aten._local_scalar_dense.default",
+        "aten.index.Tensor",
+        "aten.nonzero.default",
+        "aten.repeat_interleave.Tensor",
+    ]
+
+
+def test_one_graph_batch_serves_networks_of_any_head_count():
+    torch.manual_seed(0)
+    nets = [HGRN(obs_dim=5, n_actions=4, hidden_dim=16, n_heads=heads) for heads in (1, 2, 4)]
+    nets.append(HGRN(obs_dim=5, n_actions=4, hidden_dim=16, communication="mean"))
+    obs, neighbors, hidden = inputs(nets[0], max_neighbors=5)
+    graph = GraphBatch(neighbors)
+    for net in [*nets, *nets]:  # every network twice, in turn
+        for shared, alone in zip(net(obs, graph, hidden), net(obs, neighbors, hidden), strict=True):
+            torch.testing.assert_close(shared, alone)
+    assert sorted(graph._patterns) == [1, 2, 4]
+
+
+def test_hgrn_rejects_a_graph_batch_that_does_not_fit():
+    net = HGRN(obs_dim=5, n_actions=4, hidden_dim=8, group_n_actions=[4, 2])
+    obs, hidden, groups = torch.randn(3, 4, 5), torch.randn(3, 4, 8), GROUPS.repeat(3, 1)
+    neighbors = GROUP_NEIGHBORS.repeat(3, 1, 1)
+    graph = GraphBatch(neighbors, groups, n_groups=2)
+    expected = net(obs, neighbors, hidden, groups)
+    for shared, alone in zip(net(obs, graph, hidden), expected, strict=True):
+        torch.testing.assert_close(shared, alone)
+    with pytest.raises(ValueError, match="n_groups=2"):
+        net(obs, graph, hidden, groups)  # the groups are in the graph batch already
+    with pytest.raises(ValueError, match="n_groups=2"):
+        net(obs, GraphBatch(neighbors), hidden)
+    with pytest.raises(ValueError, match="GraphBatch holds"):
+        net(obs[:2], graph, hidden[:2])
+
+
+@pytest.mark.parametrize("algorithm", ["soft", "sac"])
+def test_acting_builds_one_graph_batch_for_all_networks(monkeypatch, algorithm):
+    from sb3_hgrn import SACHGRN, SoftHGRN, make_graph_vec_env
+
+    env = make_graph_vec_env("ctc_v0", env_kwargs=dict(n_hunters=3, n_red_banks=1, n_blue_banks=1))
+    policy_kwargs = dict(hidden_dim=8)
+    if algorithm == "sac":  # two critics with another head count than the actor's
+        policy_kwargs.update(n_critics=2, critic_kwargs=dict(n_heads=2))
+    model = (SACHGRN if algorithm == "sac" else SoftHGRN)("GraphPolicy", env, policy_kwargs=policy_kwargs)
+    built = []
+    original = GraphBatch.__init__
+    monkeypatch.setattr(GraphBatch, "__init__", lambda self, *args: built.append(original(self, *args)))
+    model.predict(env.reset())
+    assert len(built) == 1

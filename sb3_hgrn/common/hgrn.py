@@ -3,11 +3,13 @@
 Agents of ``batch`` independent graphs are processed together. The graph of each batch entry is a
 neighbour list ``neighbors`` of shape ``(batch, n_agents, max_neighbors)`` holding agent indices
 within the same graph, ``-1`` marking an empty entry. Every communication layer always adds the
-agent itself (the self-loop), so lists may or may not contain ``i`` in row ``i``.
+agent itself (the self-loop), so lists may or may not contain ``i`` in row ``i``. A list is a set:
+an agent listed several times is one neighbour (only its first entry takes part).
 
-Attention is computed only over the listed neighbours: keys and values are gathered by index and
-the cost is ``O(batch * n_agents * (max_neighbors + 1))``; no ``n_agents x n_agents`` matrix is
-ever formed.
+Attention is computed only over the listed neighbours, as sparse (CSR) matrix products over a
+pattern of ``max_neighbors + 1`` entries per agent and head: the cost is
+``O(batch * n_agents * (max_neighbors + 1))`` per feature; no ``n_agents x n_agents`` matrix is ever
+formed.
 """
 
 from __future__ import annotations
@@ -33,14 +35,20 @@ MASKED_OUTPUT = -1e9
 
 def check_neighbors(neighbors: Tensor, n_agents: int) -> None:
     """Raise a ``ValueError`` unless ``neighbors`` is ``(batch, n_agents, K)`` integer indices in
-    ``[-1, n_agents - 1]``."""
+    ``[-1, n_agents - 1]``.
+
+    Shape and dtype are always checked. The values are checked only on the CPU, where reading them
+    costs no device synchronisation; on an accelerator, check the lists where they enter (their CPU
+    copy from the env or the replay buffer). :func:`neighbor_entries` treats any index outside
+    ``[0, n_agents - 1]`` as an empty entry, so unchecked values never reach another graph.
+    """
     if neighbors.dim() != 3 or neighbors.shape[1] != n_agents:
         raise ValueError(
             f"neighbors must have shape (batch, {n_agents}, max_neighbors), got {tuple(neighbors.shape)}"
         )
     if neighbors.dtype.is_floating_point or neighbors.dtype.is_complex or neighbors.dtype == torch.bool:
         raise ValueError(f"neighbors must be an integer tensor, got dtype {neighbors.dtype}")
-    if neighbors.numel() > 0:
+    if neighbors.device.type == "cpu" and neighbors.numel() > 0:
         low, high = int(neighbors.min()), int(neighbors.max())
         if low < -1 or high >= n_agents:
             raise ValueError(
@@ -48,37 +56,55 @@ def check_neighbors(neighbors: Tensor, n_agents: int) -> None:
             )
 
 
-def neighbor_columns(neighbors: Tensor, n_agents: int) -> tuple[Tensor, Tensor]:
-    """Turn checked neighbour lists (see :func:`check_neighbors`) into flat gather indices with the
-    self-loop in column 0.
+def neighbor_entries(neighbors: Tensor, n_agents: int) -> tuple[Tensor, Tensor]:
+    """The attention entries of neighbour lists in canonical order, without reading values on the host.
+
+    An agent attends over itself and the distinct agents of its list: a list is a set, an agent
+    listed several times is attended once (its first entry) and an entry naming the agent itself
+    repeats the self-loop. Rows are the agents of the flattened ``(rows = batch * n_agents, ...)``
+    tensors; an entry's target is the flat row ``b * n_agents + j`` of the agent it attends to. The
+    entries of a row come in canonical order: the attended targets ascending, then the entries that
+    take no part (empty, out of range, repeated), each pointing at its own dummy target
+    ``rows + e`` (``e`` its place in the row) past every agent. Every row of targets is thus sorted
+    and free of repeats, as CSR column indices must be. Lists wider than the graph are cut to
+    ``n_agents`` entries, which hold every attended agent.
 
     :param neighbors: ``(batch, n_agents, max_neighbors)`` integer agent indices, ``-1`` = no entry.
     :param n_agents: number of agents per graph.
-    :return: ``columns`` of shape ``(max_neighbors + 1, batch * n_agents)`` with flat row indices
-        ``b * n_agents + j`` into a ``(batch * n_agents, ...)`` tensor (entries that are empty or
-        equal to the agent itself point at the agent and are masked), and ``mask`` of shape
-        ``(batch * n_agents, max_neighbors + 1)``, True for the entries that take part (column 0,
-        the agent itself, is always True).
+    :return: ``targets`` ``(rows, E)`` with ``E = min(max_neighbors + 1, n_agents)``, below ``rows``
+        exactly at the entries taking part, and ``positions`` ``(rows, E)``: the list place every
+        entry comes from (0 = the agent itself, ``1 + m`` = list entry ``m``), distinct in a row.
     """
-    batch = neighbors.shape[0]
-    neighbors = neighbors.to(torch.long)
-    own = torch.arange(n_agents, device=neighbors.device).view(1, n_agents, 1).expand(batch, n_agents, 1)
-    valid = (neighbors >= 0) & (neighbors != own)
-    local = torch.cat([own, torch.where(valid, neighbors, own)], dim=2)
-    offsets = (torch.arange(batch, device=neighbors.device) * n_agents).view(batch, 1, 1)
-    columns = (local + offsets).reshape(batch * n_agents, -1).t().contiguous()
-    itself = torch.ones(batch, n_agents, 1, dtype=torch.bool, device=neighbors.device)
-    mask = torch.cat([itself, valid], dim=2).reshape(batch * n_agents, -1)
-    return columns, mask
+    batch, _, width = neighbors.shape
+    rows = batch * n_agents
+    device = neighbors.device
+    own = torch.arange(n_agents, device=device).view(1, n_agents, 1).expand(batch, n_agents, 1)
+    local = torch.cat([own, neighbors.to(torch.long)], dim=2)
+    offsets = (torch.arange(batch, device=device) * n_agents).view(batch, 1, 1)
+    listed = (local >= 0) & (local < n_agents)
+    keys = torch.where(listed, local + offsets, rows).reshape(rows, width + 1)
+    # Stable: of equal targets the first list place (the self-loop before a listed self) comes first.
+    keys, positions = keys.sort(dim=1, stable=True)
+    taken = keys < rows
+    taken[:, 1:] &= keys[:, 1:] != keys[:, :-1]
+    places = torch.arange(width + 1, device=device)
+    keys, moved = torch.where(taken, keys, rows + places).sort(dim=1)
+    n_entries = min(width + 1, max(n_agents, 1))
+    targets = torch.where(keys[:, :n_entries] < rows, keys[:, :n_entries], rows + places[:n_entries])
+    return targets, positions.gather(1, moved[:, :n_entries])
 
 
 class _Pattern(NamedTuple):
     """Sparsity pattern of the attention of one neighbour structure as CSR index tensors.
 
-    Rows and columns are ``(agent, head)`` pairs ``r * heads + h`` of a ``(rows * heads, rows * heads)``
-    matrix with exactly ``K + 1`` entries per row (the listed columns of ``neighbor_columns``), so
-    ``O(rows * heads * (K + 1))`` entries are stored. ``transpose`` maps the values of the transposed
-    matrix (same pattern, rows sorted) to their position in the values of the matrix itself.
+    Rows are ``(agent, head)`` pairs ``r * heads + h``, columns ``(target, head)`` pairs
+    ``t * heads + h`` over the ``rows + E`` targets of :func:`neighbor_entries` (the agents, then
+    the dummy targets): a ``(rows * heads, (rows + E) * heads)`` matrix with exactly ``E`` entries per
+    row, their columns sorted and distinct, so ``O(rows * heads * E)`` entries are stored. Dense
+    right-hand operands get zero rows for the dummy targets (:func:`_padded`); products with the
+    transposed matrix have ``(rows + E) * heads`` rows of which the first ``rows * heads`` are kept.
+    ``transpose`` maps the values of the transposed matrix (rows by target, columns by source row)
+    to their position in the values of the matrix itself.
     """
 
     crow: Tensor
@@ -86,67 +112,87 @@ class _Pattern(NamedTuple):
     crow_t: Tensor
     col_t: Tensor
     transpose: Tensor
-    size: int
+    shape: tuple[int, int]
 
 
-def _attention_pattern(columns: Tensor, heads: int) -> _Pattern:
-    """Build the CSR pattern of attention over ``columns`` ``(K + 1, rows)`` for ``heads`` heads; the
-    values of a matrix on it are laid out as ``(rows, heads, K + 1)``."""
-    n_columns, rows = columns.shape
-    device = columns.device
+def _attention_pattern(targets: Tensor, heads: int) -> _Pattern:
+    """Build the CSR pattern of attention over ``targets`` ``(rows, E)`` (see :func:`neighbor_entries`)
+    for ``heads`` heads; the values of a matrix on it are laid out as ``(rows, heads, E)``."""
+    rows, n_entries = targets.shape
+    n_targets = rows + n_entries
+    device = targets.device
     head = torch.arange(heads, device=device)
-    target = columns.t().reshape(-1)  # entry e = r * (K + 1) + c points at agent target[e]
-    col = (target.view(rows, 1, n_columns) * heads + head.view(1, heads, 1)).reshape(-1)
-    crow = torch.arange(0, rows * heads * n_columns + 1, n_columns, device=device)
-    order = torch.argsort(target, stable=True)
-    count = torch.bincount(target, minlength=rows)
+    col = (targets.unsqueeze(1) * heads + head.view(1, heads, 1)).reshape(-1)
+    crow = torch.arange(0, rows * heads * n_entries + 1, n_entries, device=device)
+    target = targets.reshape(-1)  # entry e = r * E + k points at target[e]
+    order = torch.argsort(target, stable=True)  # by target, then by source row
+    count = torch.zeros(n_targets, dtype=torch.long, device=device).index_add_(
+        0, target, torch.ones_like(target)
+    )
     first = torch.cumsum(count, 0) - count
     sorted_target = target[order]
-    # Transposed row (j, h) holds the count[j] entries pointing at j, in the order of ``order``.
-    dest = ((heads - 1) * first[sorted_target] + torch.arange(order.numel(), device=device)).unsqueeze(
-        1
-    ) + head * count[sorted_target].unsqueeze(1)
-    source_row = (order // n_columns * heads).unsqueeze(1) + head
-    transpose = torch.empty(dest.numel(), dtype=torch.long, device=device)
-    transpose[dest.reshape(-1)] = (source_row * n_columns + (order % n_columns).unsqueeze(1)).reshape(-1)
-    col_t = torch.empty_like(transpose)
-    col_t[dest.reshape(-1)] = source_row.reshape(-1)
-    crow_t = torch.zeros(rows * heads + 1, dtype=torch.long, device=device)
-    torch.cumsum(count.repeat_interleave(heads), 0, out=crow_t[1:])
-    return _Pattern(crow, col, crow_t, col_t, transpose, rows * heads)
+    # Transposed row (t, h) holds the count[t] entries pointing at t, by increasing source row.
+    dest = (
+        ((heads - 1) * first[sorted_target] + torch.arange(order.numel(), device=device)).unsqueeze(1)
+        + head * count[sorted_target].unsqueeze(1)
+    ).reshape(-1)
+    source_row = (order // n_entries * heads).unsqueeze(1) + head
+    source = (source_row * n_entries + (order % n_entries).unsqueeze(1)).reshape(-1)
+    transpose = torch.empty_like(dest).scatter_(0, dest, source)
+    col_t = torch.empty_like(dest).scatter_(0, dest, source_row.reshape(-1))
+    crow_t = torch.zeros(n_targets * heads + 1, dtype=torch.long, device=device)
+    torch.cumsum(count.unsqueeze(1).expand(n_targets, heads).reshape(-1), 0, out=crow_t[1:])
+    return _Pattern(crow, col, crow_t, col_t, transpose, (rows * heads, n_targets * heads))
 
 
-def _sparse(crow: Tensor, col: Tensor, values: Tensor, size: int) -> Tensor:
-    """``(size, size)`` CSR matrix with the given index tensors and flat ``values``."""
+def _sparse(crow: Tensor, col: Tensor, values: Tensor, shape: tuple[int, int]) -> Tensor:
+    """CSR matrix of ``shape`` with the given index tensors and flat ``values``.
+
+    The patterns have sorted, distinct columns in every row by construction; they are checked only
+    under ``torch.sparse.check_sparse_tensor_invariants()`` (the tests turn it on; checking reads
+    the indices on the host).
+    """
+    check = torch.sparse.check_sparse_tensor_invariants.is_enabled()
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", "Sparse CSR tensor support is in beta state")
-        return torch.sparse_csr_tensor(crow, col, values, (size, size), check_invariants=False)
+        return torch.sparse_csr_tensor(crow, col, values, shape, check_invariants=check)
+
+
+def _padded(pattern: _Pattern, dense: Tensor) -> Tensor:
+    """``dense`` ``(rows * heads, head_dim)`` with zero rows for the dummy targets appended:
+    ``((rows + E) * heads, head_dim)``, a right-hand operand of the matrices on ``pattern``."""
+    return torch.cat([dense, dense.new_zeros(pattern.shape[1] - pattern.shape[0], dense.shape[1])])
 
 
 def _matmul(pattern: _Pattern, values: Tensor, dense: Tensor, transposed: bool = False) -> Tensor:
-    """``M @ dense`` (or ``M^T @ dense``) for the matrix ``M`` with ``values`` ``(rows, heads, K + 1)``
-    on ``pattern``; ``dense`` ``(rows * heads, head_dim)``."""
+    """``M @ dense`` (or ``M^T @ dense``) for the matrix ``M`` with ``values`` ``(rows, heads, E)``
+    on ``pattern``; ``dense`` is ``((rows + E) * heads, head_dim)`` (see :func:`_padded`), or
+    ``(rows * heads, head_dim)`` if ``transposed``. :return: ``(rows * heads, head_dim)``."""
     values = values.reshape(-1)
+    rows, columns = pattern.shape
     if transposed:
-        return _sparse(pattern.crow_t, pattern.col_t, values[pattern.transpose], pattern.size) @ dense
-    return _sparse(pattern.crow, pattern.col, values, pattern.size) @ dense
+        matrix = _sparse(pattern.crow_t, pattern.col_t, values[pattern.transpose], (columns, rows))
+        return (matrix @ dense)[:rows]
+    return _sparse(pattern.crow, pattern.col, values, pattern.shape) @ dense
 
 
 def _sampled_dot(pattern: _Pattern, left: Tensor, right: Tensor) -> Tensor:
-    """Dot products ``left[row] . right[col]`` ``(rows * heads * (K + 1),)`` at the entries of
-    ``pattern``; ``left``, ``right`` ``(rows * heads, head_dim)``."""
-    zeros = torch.zeros(pattern.col.numel(), dtype=left.dtype, device=left.device)
+    """Dot products ``left[row] . right[col]`` ``(rows * heads * E,)`` at the entries of ``pattern``;
+    ``left`` ``(rows * heads, head_dim)``, ``right`` ``((rows + E) * heads, head_dim)`` (see
+    :func:`_padded`)."""
+    zeros = left.new_zeros(pattern.col.numel())
     return torch.sparse.sampled_addmm(
-        _sparse(pattern.crow, pattern.col, zeros, pattern.size), left, right.t(), beta=0.0
+        _sparse(pattern.crow, pattern.col, zeros, pattern.shape), left, right.t(), beta=0.0
     ).values()
 
 
 class _NeighborAttention(torch.autograd.Function):
-    """Masked multi-head attention over gathered neighbours as sparse (CSR) matrix products.
+    """Masked multi-head attention over neighbour entries as sparse (CSR) matrix products.
 
-    Logits are sampled dot products at the listed entries only and the weighted sums of values are
-    sparse-dense products, so nothing of size ``(rows, K + 1, heads, head_dim)`` is formed; the
-    backward pass uses the transposed pattern for the gradients of keys and values.
+    Logits are sampled dot products at the ``E`` entries of every row only (:class:`_Pattern`) and
+    the weighted sums of values are sparse-dense products, so nothing of size
+    ``(rows, E, heads, head_dim)`` is formed; the backward pass uses the transposed pattern for the
+    gradients of keys and values. Entries are in the canonical order of :func:`neighbor_entries`.
 
     Entries may fall into several segments (the sender groups of heterogeneous attention): the
     softmax then runs within each segment of a row separately and each segment gives its own
@@ -158,12 +204,12 @@ class _NeighborAttention(torch.autograd.Function):
         ctx, query: Tensor, key: Tensor, value: Tensor, pattern: _Pattern, segments: list[Tensor]
     ) -> tuple[Tensor, Tensor]:
         """``query``/``key``/``value`` ``(rows, heads, head_dim)``; ``segments``: one bool mask
-        ``(rows, K + 1)`` per segment marking its entries (disjoint; entries in none are masked out).
-        Returns outputs ``(rows, n_segments, heads, head_dim)`` and attention weights
-        ``(rows, heads, K + 1)`` (each segment of a row sums to one, or to zero if it is empty)."""
+        ``(rows, E)`` per segment marking its entries (disjoint, never a dummy entry; entries in none
+        are masked out). Returns outputs ``(rows, n_segments, heads, head_dim)`` and attention weights
+        ``(rows, heads, E)`` (each segment of a row sums to one, or to zero if it is empty)."""
         rows, heads, head_dim = query.shape
         scaled_query = (query * head_dim**-0.5).reshape(-1, head_dim)
-        key, value = key.reshape(-1, head_dim), value.reshape(-1, head_dim)
+        key, value = (_padded(pattern, tensor.reshape(-1, head_dim)) for tensor in (key, value))
         logits = _sampled_dot(pattern, scaled_query, key).view(rows, heads, -1)
         if len(segments) == 1:
             weights = logits.masked_fill_(~segments[0].unsqueeze(1), -math.inf).softmax(dim=-1)
@@ -188,7 +234,7 @@ class _NeighborAttention(torch.autograd.Function):
         rows, n_segments, heads, head_dim = grad_out.shape
         grad_weights = torch.zeros_like(weights)  # d loss / d weight of every entry
         weighted_sums = torch.zeros_like(weights)  # per entry: sum over its segment of weight * that
-        grad_value = torch.zeros_like(value)
+        grad_value = torch.zeros_like(scaled_query)
         for index, segment in enumerate(segments):
             selection = segment.unsqueeze(1).to(weights.dtype) if n_segments > 1 else 1.0
             segment_grad_out = grad_out[:, index].reshape(-1, head_dim)
@@ -213,21 +259,34 @@ def _check_positive(**sizes: int) -> None:
 class GraphBatch:
     """A batch of graphs prepared once per forward pass and shared by the communication layers.
 
+    Build it once per batch of graphs and pass it to every network reading them (an actor and its
+    critics): the attention patterns are cached per head count, so networks of any head counts can
+    share it. With one group, preparing it and attending over it (forward and backward) never read
+    values of accelerator tensors on the host, so they never synchronise (neighbour values are
+    validated only on the CPU, see :func:`check_neighbors`). With several groups the rows of each
+    group are found with ``torch.nonzero`` and the group ids are validated, which synchronises.
+
+    Entries (``E = min(max_neighbors + 1, n_agents)`` per agent, see :func:`neighbor_entries`) are
+    held in canonical order: ``targets`` ``(rows, E)`` (``rows = batch * n_agents``), ``positions``
+    ``(rows, E)`` their list places, ``mask`` ``(rows, E)`` the entries taking part and ``columns``
+    ``(rows, E)`` the flat agent row of every entry (the agent itself where none takes part).
+
     :param neighbors: ``(batch, n_agents, max_neighbors)`` agent indices within the same graph,
-        ``-1`` = no entry.
+        ``-1`` = no entry; an agent listed several times is one neighbour.
     :param groups: ``(batch, n_agents)`` group id of every agent (``None``: all in group 0).
     :param n_groups: number of agent groups the network has.
     """
 
     def __init__(self, neighbors: Tensor, groups: Tensor | None = None, n_groups: int = 1) -> None:
         self.batch, self.n_agents = neighbors.shape[:2]
+        self.rows = self.batch * self.n_agents
         self.n_groups = n_groups
         check_neighbors(neighbors, self.n_agents)
         self.list_width = neighbors.shape[2]
-        self.kept_entries: Tensor | None = None
-        if self.list_width >= max(self.n_agents, 1):
-            neighbors, self.kept_entries = _compact_lists(neighbors, self.n_agents)
-        self.columns, self.mask = neighbor_columns(neighbors, self.n_agents)
+        self.targets, self.positions = neighbor_entries(neighbors, self.n_agents)
+        self.mask = self.targets < self.rows
+        own = torch.arange(self.rows, device=neighbors.device).unsqueeze(1)
+        self.columns = torch.where(self.mask, self.targets, own)
         self._patterns: dict[int, _Pattern] = {}
         self.group_rows: list[Tensor] | None = None
         self.group_inverse: Tensor | None = None
@@ -249,46 +308,29 @@ class GraphBatch:
         self.row_groups = flat
         self.group_rows = [torch.nonzero(flat == group).squeeze(1) for group in range(self.n_groups)]
         self.group_inverse = torch.argsort(torch.cat(self.group_rows))
-        self.column_groups = flat[self.columns.t()]  # (rows, K + 1) group of every listed entry
+        self.column_groups = flat[self.columns]  # (rows, E) group of every entry
 
     def list_weights(self, weights: Tensor) -> Tensor:
-        """Attention weights ``(batch * n_agents, heads, K' + 1)`` over the (possibly compacted) lists,
-        laid out over the original lists ``(batch * n_agents, heads, list_width + 1)``."""
-        if self.kept_entries is None:
-            return weights
-        full = weights.new_zeros(*weights.shape[:2], self.list_width + 1)
-        full[..., 0] = weights[..., 0]
-        positions = (self.kept_entries.reshape(weights.shape[0], 1, -1) + 1).expand(-1, weights.shape[1], -1)
-        return full.scatter_(2, positions, weights[..., 1:])
+        """Attention weights ``(rows, heads, E)`` in canonical order laid out over the lists:
+        ``(rows, heads, list_width + 1)``, column 0 the agent itself, ``1 + m`` list entry ``m``, zero
+        at the entries taking no part."""
+        positions = self.positions.unsqueeze(1).expand(-1, weights.shape[1], -1)
+        return weights.new_zeros(*weights.shape[:2], self.list_width + 1).scatter_(2, positions, weights)
 
     def pattern(self, heads: int) -> _Pattern:
         """CSR pattern of the attention with ``heads`` heads (built once per head count)."""
         if heads not in self._patterns:
-            self._patterns[heads] = _attention_pattern(self.columns, heads)
+            self._patterns[heads] = _attention_pattern(self.targets, heads)
         return self._patterns[heads]
 
     def segments(self, across_groups: bool) -> list[Tensor]:
-        """Bool masks ``(rows, K + 1)`` of the entries attended together: one per sender group
+        """Bool masks ``(rows, E)`` of the entries attended together: one per sender group
         (``across_groups``), or a single one over the neighbours of the agent's own group."""
         if self.n_groups == 1:
             return [self.mask]
         if across_groups:
             return [self.mask & (self.column_groups == group) for group in range(self.n_groups)]
         return [self.mask & (self.column_groups == self.row_groups.unsqueeze(1))]
-
-
-def _compact_lists(neighbors: Tensor, n_agents: int) -> tuple[Tensor, Tensor]:
-    """Shorten lists with at least ``n_agents`` entries to ``n_agents - 1``, valid entries first.
-
-    No agent has more than ``n_agents - 1`` others, so only empty entries, entries naming the agent
-    itself and repeated entries can fall off (a repeated neighbour then counts fewer times). The
-    sparse attention needs this: it cannot hold more entries per row than the graph has agents.
-    :return: the shortened lists and the positions ``(batch, n_agents, n_agents - 1)`` they came from.
-    """
-    own = torch.arange(n_agents, device=neighbors.device).view(1, n_agents, 1)
-    invalid = ((neighbors < 0) | (neighbors == own)).to(torch.int8)
-    kept = torch.argsort(invalid, dim=2, stable=True)[..., : n_agents - 1]
-    return neighbors.gather(2, kept), kept
 
 
 def _as_graph(graph: GraphBatch | Tensor) -> GraphBatch:
@@ -329,8 +371,9 @@ class GraphAttention(nn.Module):
     """Multi-head (heterogeneous) graph attention over neighbour lists, self-loop always included.
 
     ``q, k, v = ReLU(Linear(x))`` with ``n_heads * head_dim`` features each; agent ``i`` attends over
-    itself and its valid listed neighbours with logits ``q_i . k_j / sqrt(head_dim)``; heads are
-    concatenated and mapped by ``ReLU(Linear(n_heads * head_dim -> out_dim))``.
+    itself and the distinct agents of its list (each once, however often listed) with logits
+    ``q_i . k_j / sqrt(head_dim)``; heads are concatenated and mapped by
+    ``ReLU(Linear(n_heads * head_dim -> out_dim))``.
 
     With several agent groups (HGAT) the receiver's group owns the query and the output map, the
     sender's group owns the key and value; ``across_groups=True`` attends over the neighbours of each
@@ -387,8 +430,9 @@ class GraphAttention(nn.Module):
         :param return_attention: also return the attention weights.
         :return: ``(batch, n_agents, out_dim)``; with ``return_attention`` also the weights
             ``(batch, n_agents, n_heads, max_neighbors + 1)``, column 0 being the agent itself and
-            column ``1 + m`` the list entry ``m`` (zero where the entry is empty, the agent itself, or
-            not attended); with several sender groups the weights of each group sum to one.
+            column ``1 + m`` the list entry ``m`` (zero where the entry is empty, the agent itself, an
+            agent listed before, or not attended); with several sender groups the weights of each
+            group sum to one.
         """
         graph = _as_graph(graph)
         batch, n_agents, _ = x.shape
@@ -406,7 +450,8 @@ class GraphAttention(nn.Module):
 
 
 class MeanCommunication(nn.Module):
-    """CommNet-style communication: ``ReLU(Linear([x_i, mean_j x_j]))`` over valid neighbours ``j != i``.
+    """CommNet-style communication: ``ReLU(Linear([x_i, mean_j x_j]))`` over the distinct listed
+    neighbours ``j != i``.
 
     The mean is zero for an agent without neighbours. With several groups, each receiver group has
     its own output map.
@@ -426,10 +471,11 @@ class MeanCommunication(nn.Module):
         lists ``(batch, n_agents, max_neighbors)``. :return: ``(batch, n_agents, out_dim)``."""
         graph = _as_graph(graph)
         batch, n_agents, in_dim = x.shape
-        others = graph.mask[:, 1:].t().unsqueeze(-1).to(x.dtype)  # (K, rows, 1)
-        gathered = x.reshape(-1, in_dim).index_select(0, graph.columns[1:].reshape(-1))
-        total = (gathered.reshape(*others.shape[:2], in_dim) * others).sum(0)
-        mean = total / others.sum(0).clamp(min=1.0)
+        own = torch.arange(graph.rows, device=x.device).unsqueeze(1)
+        others = (graph.mask & (graph.columns != own)).unsqueeze(-1).to(x.dtype)  # (rows, E, 1)
+        gathered = x.reshape(-1, in_dim).index_select(0, graph.columns.reshape(-1))
+        total = (gathered.reshape(*others.shape[:2], in_dim) * others).sum(1)
+        mean = total / others.sum(1).clamp(min=1.0)
         joined = torch.cat([x, mean.reshape(batch, n_agents, in_dim)], dim=-1)
         return F.relu(self.output(joined, graph=graph))
 
@@ -531,20 +577,24 @@ class HGRN(nn.Module):
         return self.hidden_dim if self.recurrent else 0
 
     def forward(
-        self, obs: Tensor, neighbors: Tensor, hidden: Tensor, groups: Tensor | None = None
+        self, obs: Tensor, neighbors: Tensor | GraphBatch, hidden: Tensor, groups: Tensor | None = None
     ) -> tuple[Tensor, Tensor]:
         """One step for all agents.
 
         :param obs: ``(batch, n_agents, obs_dim)`` float observations.
-        :param neighbors: ``(batch, n_agents, max_neighbors)`` agent indices, ``-1`` = no entry;
-            ``max_neighbors`` may be 0.
+        :param neighbors: ``(batch, n_agents, max_neighbors)`` agent indices, ``-1`` = no entry
+            (``max_neighbors`` may be 0), or the :class:`GraphBatch` of these graphs built with this
+            network's ``n_groups`` (and the groups), which several networks can share.
         :param hidden: ``(batch, n_agents, state_dim)`` recurrent state fed in.
-        :param groups: ``(batch, n_agents)`` group ids (needed with several groups).
+        :param groups: ``(batch, n_agents)`` group ids (needed with several groups and neighbour
+            lists; a :class:`GraphBatch` carries them already).
         :return: outputs ``(batch, n_agents, n_actions)`` and the new state
             ``(batch, n_agents, state_dim)``.
         """
-        self._check_inputs(obs, neighbors, hidden)
-        graph = GraphBatch(neighbors, groups, self.n_groups)
+        self._check_inputs(obs, neighbors, hidden, groups)
+        graph = (
+            neighbors if isinstance(neighbors, GraphBatch) else GraphBatch(neighbors, groups, self.n_groups)
+        )
         precision = (
             torch.autocast(obs.device.type, dtype=torch.bfloat16)
             if self.mixed_precision
@@ -567,10 +617,23 @@ class HGRN(nn.Module):
             out = out.masked_fill(~valid, MASKED_OUTPUT)
         return out, hidden
 
-    def _check_inputs(self, obs: Tensor, neighbors: Tensor, hidden: Tensor) -> None:
+    def _check_inputs(
+        self, obs: Tensor, neighbors: Tensor | GraphBatch, hidden: Tensor, groups: Tensor | None
+    ) -> None:
         if obs.dim() != 3 or obs.shape[-1] != self.obs_dim:
             raise ValueError(f"obs must have shape (batch, n_agents, {self.obs_dim}), got {tuple(obs.shape)}")
-        if neighbors.dim() != 3 or neighbors.shape[:2] != obs.shape[:2]:
+        if isinstance(neighbors, GraphBatch):
+            if (neighbors.batch, neighbors.n_agents) != tuple(obs.shape[:2]):
+                raise ValueError(
+                    f"The GraphBatch holds {neighbors.batch} graphs of {neighbors.n_agents} agents, the "
+                    f"observations {tuple(obs.shape[:2])}."
+                )
+            if neighbors.n_groups != self.n_groups or groups is not None:
+                raise ValueError(
+                    f"A GraphBatch for this network must be built with n_groups={self.n_groups} and "
+                    "the groups, which are then not passed again."
+                )
+        elif neighbors.dim() != 3 or neighbors.shape[:2] != obs.shape[:2]:
             raise ValueError(
                 f"neighbors must have shape (batch, n_agents, max_neighbors) = {tuple(obs.shape[:2])} + "
                 f"(K,), got {tuple(neighbors.shape)}"

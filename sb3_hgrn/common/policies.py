@@ -10,7 +10,7 @@ from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import Schedule
 
-from sb3_hgrn.common.hgrn import HGRN
+from sb3_hgrn.common.hgrn import HGRN, GraphBatch
 from sb3_hgrn.common.temperature import EntropyTemperature
 
 GraphObs = dict[str, th.Tensor]
@@ -171,6 +171,12 @@ class GraphPolicy(BasePolicy):
             obs["neighbors"].reshape(n_graphs, n_agents, -1).long(),
             None if groups is None else groups.reshape(n_graphs, n_agents).long(),
         )
+
+    def graph_batch(self, neighbors: th.Tensor, groups: th.Tensor | None) -> GraphBatch:
+        """The prepared graphs of :meth:`to_graphs`' neighbours ``(n_graphs, n_agents, K)`` and group
+        ids ``(n_graphs, n_agents)`` (or ``None``): build it once and pass it, in place of the
+        neighbours, to every network reading these graphs."""
+        return GraphBatch(neighbors, groups, self.n_groups)
 
     def act(
         self, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False

@@ -72,12 +72,11 @@ class SACHGRNPolicy(GraphPolicy):
         observations, neighbors, groups = self.to_graphs(obs)
         n_graphs, n_agents = observations.shape[:2]
         states = self.split_state(hidden.reshape(n_graphs, n_agents, -1))
-        logits, actor_state = self.actor(observations, neighbors, states[0], groups)
+        graph = self.graph_batch(neighbors, groups)  # shared by the actor and every critic
+        logits, actor_state = self.actor(observations, graph, states[0])
         new_states = [actor_state]
         for critic, state in zip(self.critics, states[1:], strict=True):
-            new_states.append(
-                critic(observations, neighbors, state, groups)[1] if critic.state_dim else state
-            )
+            new_states.append(critic(observations, graph, state)[1] if critic.state_dim else state)
         if deterministic or not self.stochastic:
             actions = logits.argmax(dim=-1)
         else:

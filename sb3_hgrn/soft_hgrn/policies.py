@@ -45,9 +45,8 @@ class SoftHGRNPolicy(GraphPolicy):
     ) -> tuple[th.Tensor, th.Tensor]:
         observations, neighbors, groups = self.to_graphs(obs)
         n_graphs, n_agents = observations.shape[:2]
-        q_values, new_hidden = self.q_net(
-            observations, neighbors, hidden.reshape(n_graphs, n_agents, -1), groups
-        )
+        graph = self.graph_batch(neighbors, groups)
+        q_values, new_hidden = self.q_net(observations, graph, hidden.reshape(n_graphs, n_agents, -1))
         if deterministic or not self.stochastic:
             actions = q_values.argmax(dim=-1)
         else:
