@@ -19,7 +19,7 @@ def quick_model(env, **kwargs):
 @pytest.mark.parametrize(
     "actor_loss, tau",
     # the policy-gradient form learns this task with slowly tracking targets, not with hard copies
-    [("standard", 1.0), ("standard", 0.01), ("policy_gradient", 0.01)],
+    [("boltzmann", 1.0), ("standard", 1.0), ("standard", 0.01), ("policy_gradient", 0.01)],
 )
 def test_learns_the_neighbour_bit_task(actor_loss, tau):
     model = quick_model(
@@ -55,8 +55,34 @@ def test_exact_soft_value_and_greedy_value():
     assert model._next_value(next_q, logits, alpha).item() == pytest.approx(3.0)
 
 
-def test_standard_actor_loss_matches_hand_computation():
+def test_boltzmann_actor_loss_matches_hand_computation():
     model = quick_model(bit_vec_env(n_envs=1))
+    assert model.actor_loss == "boltzmann"
+    logits = th.log(th.tensor([[[0.5, 0.5]]]))
+    q = th.tensor([[[1.0, 2.0]]])
+    target = th.softmax(q / 0.2, dim=-1)[0, 0].tolist()  # the Boltzmann policy of Q at alpha 0.2
+    expected = sum(p * (math.log(p) - math.log(0.5)) for p in target)
+    assert model._policy_loss(logits, q, th.tensor(0.2)).item() == pytest.approx(expected, rel=1e-6)
+    model.stochastic = False  # the greedy limit: cross-entropy to the best action
+    assert model._policy_loss(logits, q, th.tensor(0.2)).item() == pytest.approx(-math.log(0.5), rel=1e-6)
+
+
+def test_boltzmann_actor_loss_pulls_up_an_action_of_probability_near_zero():
+    """The gradient on a logit is pi - softmax(Q / alpha): full size for an action the actor has
+    all but dropped, where the standard loss's gradient is proportional to its probability."""
+    model = quick_model(bit_vec_env(n_envs=1))
+    q = th.tensor([[[0.0, 1.0]]])
+    gradients = {}
+    for loss in ("boltzmann", "standard"):
+        model.actor_loss = loss
+        logits = th.tensor([[[0.0, -20.0]]], requires_grad=True)
+        model._policy_loss(logits, q, th.tensor(0.1)).backward()
+        gradients[loss] = -logits.grad[0, 0, 1].item()  # how hard a descent step raises action 1
+    assert gradients["boltzmann"] > 0.99 and 0 < gradients["standard"] < 1e-7
+
+
+def test_standard_actor_loss_matches_hand_computation():
+    model = quick_model(bit_vec_env(n_envs=1), actor_loss="standard")
     logits = th.log(th.tensor([[[0.5, 0.5]]]))
     q = th.tensor([[[1.0, 2.0]]])
     expected = 0.5 * (0.2 * math.log(0.5) - 1.0) + 0.5 * (0.2 * math.log(0.5) - 2.0)

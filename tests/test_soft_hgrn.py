@@ -214,3 +214,11 @@ def test_same_seed_gives_the_same_training_run():
     other = quick_model(bit_env(n_envs=2, seed=3), seed=12)
     other.learn(8 * 30)
     assert not th.equal(parameters[0], th.cat([p.detach().flatten() for p in other.policy.parameters()]))
+
+
+def test_gradient_steps_minus_one_takes_one_step_per_graph_collected():
+    """SB3's ``gradient_steps=-1`` (as many gradient steps as collected): a collected step of 2 copies
+    holds 2 graphs, and ``batch_size`` counts graphs, so 2 gradient steps, not one per agent (8)."""
+    model = quick_model(bit_env(n_envs=2), gradient_steps=-1)
+    model.learn(8 * 20)  # vec-steps 9..20 train (num_timesteps > learning_starts=64)
+    assert model._n_updates == 12 * 2

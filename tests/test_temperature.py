@@ -35,7 +35,7 @@ def test_alpha_falls_above_target_and_rises_below(optimizer, log_space):
         assert (temperature.alpha.item() - before) * direction > 0
 
 
-def test_sgd_step_is_clipped_to_one_percent_of_alpha():
+def test_sgd_step_is_bounded_to_one_percent_of_alpha():
     temperature = EntropyTemperature(2.0)
     controller = TemperatureController(temperature, target=0.0, optimizer="sgd", learning_rate=1.0)
     gradient = controller.update(th.tensor(3.0))
@@ -43,10 +43,41 @@ def test_sgd_step_is_clipped_to_one_percent_of_alpha():
     assert temperature.alpha.item() == pytest.approx(2.0 - 0.01 * 2.0)
 
 
+@pytest.mark.parametrize("log_space", [False, True])
+@pytest.mark.parametrize("optimizer, learning_rate", [("adam", 1e-3), ("adam", 0.1), ("sgd", 10.0)])
+def test_every_update_moves_alpha_by_at_most_one_percent(optimizer, learning_rate, log_space):
+    """The bound holds on the step, whatever the optimiser makes of the gradient: Adam's steps are
+    about its learning rate in absolute terms, far beyond 1 % of a small alpha."""
+    temperature = EntropyTemperature(0.05, log_space=log_space)
+    controller = TemperatureController(
+        temperature, target=0.5, optimizer=optimizer, learning_rate=learning_rate
+    )
+    alphas = [temperature.alpha.item()]
+    for entropy in [1.0] * 50 + [0.0] * 50:
+        controller.update(th.tensor(entropy))
+        alphas.append(temperature.alpha.item())
+    ratios = th.tensor(alphas[1:]) / th.tensor(alphas[:-1])
+    assert ratios.min() >= 0.99 - 1e-6 and ratios.max() <= 1.01 + 1e-6
+    assert alphas[50] < alphas[0] and alphas[100] > alphas[50]
+
+
+@pytest.mark.parametrize("log_space", [False, True])
+def test_adam_cannot_collapse_alpha_while_the_entropy_is_near_target(log_space):
+    """300 updates with the entropy a little above target (0.52-0.53 against 0.5) leave alpha within
+    0.99^300 of where it started, far above its floor (Adam's unbounded steps of about 1e-3 took alpha
+    from 0.1 to the floor within about 100 updates)."""
+    temperature = EntropyTemperature(0.1, log_space=log_space)
+    controller = TemperatureController(temperature, target=0.5, optimizer="adam", learning_rate=1e-3)
+    generator = th.Generator().manual_seed(0)
+    for _ in range(300):
+        controller.update(0.52 + 0.01 * th.rand(1, generator=generator))
+    assert temperature.alpha.item() >= 0.1 * 0.99**300 > 100 * controller.min_alpha
+
+
 def test_alpha_stays_above_its_floor():
     temperature = EntropyTemperature(1e-5)
     controller = TemperatureController(
-        temperature, target=0.0, optimizer="sgd", learning_rate=10.0, max_grad_ratio=1e9
+        temperature, target=0.0, optimizer="sgd", learning_rate=10.0, max_step_ratio=0.5
     )
     controller.update(th.tensor(5.0))
     assert temperature.alpha.item() == pytest.approx(1e-5)
@@ -57,3 +88,5 @@ def test_bad_temperature_arguments():
         EntropyTemperature(0.0)
     with pytest.raises(ValueError, match="alpha_optimizer"):
         TemperatureController(EntropyTemperature(), 0.1, optimizer="rmsprop")
+    with pytest.raises(ValueError, match="max_step_ratio"):
+        TemperatureController(EntropyTemperature(), 0.1, max_step_ratio=1.0)

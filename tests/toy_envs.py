@@ -1,4 +1,5 @@
-"""Small many-agent envs for the tests."""
+"""Small many-agent envs for the tests, and the training set-up of the learning tests
+(``tests/test_learning.py``, ``benchmarks/learning_tasks.py``)."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import gymnasium as gym
 import numpy as np
 from pettingzoo import ParallelEnv
 
+from sb3_hgrn import SACHGRN, SoftHGRN, evaluate_graph_policy, make_graph_vec_env
 from sb3_hgrn.common.graph_env import AgentGroup, GraphParallelEnv, padded_observation_space
 
 
@@ -86,8 +88,6 @@ class DictOnlyEnv(ParallelEnv):
 
 def bit_vec_env(n_envs: int = 4, n_agents: int = 4, seed: int = 0):
     """Graph VecEnv of ``n_envs`` copies of :class:`NeighborBitEnv` with 8-step episodes."""
-    from sb3_hgrn import make_graph_vec_env
-
     return make_graph_vec_env(lambda: NeighborBitEnv(n_agents, max_cycles=8), n_envs=n_envs, seed=seed)
 
 
@@ -143,3 +143,143 @@ class SignalReaderEnv(GraphParallelEnv):
 
     def neighbors(self):
         return self._graph.copy()
+
+
+class _IndependentAgentsEnv(GraphParallelEnv):
+    """Base of the single-skill tasks below: agents that do not interact (each lists only itself)."""
+
+    metadata = {"render_modes": [], "name": "independent_agents"}
+
+    def __init__(self, n_agents: int, obs_dim: int, n_actions: int):
+        self.possible_agents = [f"agent_{i}" for i in range(n_agents)]
+        self.shared_observation_space = gym.spaces.Box(0, 1, shape=(obs_dim,), dtype=np.float32)
+        self.shared_action_space = gym.spaces.Discrete(n_actions)
+        self.max_neighbors = 1
+        self.render_mode = None
+        self._rng = np.random.default_rng()
+        self._graph = np.arange(n_agents)[:, None]
+
+    def reset_arrays(self, seed=None, options=None):
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+        self._t = 0
+        return self._start()
+
+    def neighbors(self):
+        return self._graph.copy()
+
+
+class CueMemoryEnv(_IndependentAgentsEnv):
+    """Memory: each agent sees a random cue bit at the first step only, then ``delay`` blank steps,
+    then a query step where it earns 1 for naming the cue; the episode then terminates. Without
+    memory the best expected return is 0.5 per agent.
+
+    Observation ``(3,)``: the cue (first step only), a first-step flag and a query flag."""
+
+    def __init__(self, n_agents: int = 4, delay: int = 2):
+        super().__init__(n_agents, obs_dim=3, n_actions=2)
+        self.delay = delay
+
+    def _observe(self) -> np.ndarray:
+        obs = np.zeros((self.n_agents, 3), dtype=np.float32)
+        if self._t == 0:
+            obs[:, 0], obs[:, 1] = self._cues, 1.0
+        obs[:, 2] = float(self._t == self.delay + 1)
+        return obs
+
+    def _start(self):
+        self._cues = self._rng.integers(0, 2, size=self.n_agents)
+        return self._observe()
+
+    def step_arrays(self, actions):
+        query = self._t == self.delay + 1
+        rewards = ((actions == self._cues) & query).astype(np.float32)
+        self._t += 1
+        ended = np.full(self.n_agents, query)
+        return self._observe(), rewards, ended, np.zeros(self.n_agents, dtype=bool), {}
+
+
+class InvestEnv(_IndependentAgentsEnv):
+    """Delayed reward and real terminations: every step an agent consumes (+0.2 now) or invests
+    (-0.5 now, +1 at the next step). The episode terminates after ``max_cycles`` steps, and the
+    observation shows the last step and whether a payout is due.
+
+    Investing pays ``-0.5 + gamma * 1`` against 0.2 for consuming, so a learner that bootstraps
+    invests; on the last step nothing follows, so it consumes. A learner that does not bootstrap
+    never invests (return 1.0 per agent over 5 steps); one that bootstraps through the termination
+    also invests on the last step (1.5). The optimum is 2.2. With ``time_limit=True`` the episode is
+    truncated instead of terminated: the payout still counts in the values, so a learner that
+    bootstraps at time limits (as it must) invests on the last step too.
+
+    Observation ``(2,)``: last-step flag, payout-due flag."""
+
+    def __init__(self, n_agents: int = 4, max_cycles: int = 5, time_limit: bool = False):
+        super().__init__(n_agents, obs_dim=2, n_actions=2)
+        self.max_cycles, self.time_limit = max_cycles, time_limit
+
+    def _observe(self) -> np.ndarray:
+        last = np.full(self.n_agents, self._t == self.max_cycles - 1, dtype=np.float32)
+        return np.stack([last, self._due.astype(np.float32)], axis=1)
+
+    def _start(self):
+        self._due = np.zeros(self.n_agents, dtype=bool)
+        return self._observe()
+
+    def step_arrays(self, actions):
+        invest = actions == 1
+        rewards = (np.where(invest, -0.5, 0.2) + self._due).astype(np.float32)
+        self._due = invest
+        self._t += 1
+        ended = np.full(self.n_agents, self._t >= self.max_cycles)
+        no_end = np.zeros(self.n_agents, dtype=bool)
+        terminated, truncated = (no_end, ended) if self.time_limit else (ended, no_end)
+        return self._observe(), rewards, terminated, truncated, {}
+
+
+class TagEnv(_IndependentAgentsEnv):
+    """A costly but necessary action: each step a target is in reach of an agent with probability
+    ``p_target`` (shown as a bit). Of ``n_actions`` actions the last one tags: +1 with a target in
+    reach, ``-penalty`` without; the others earn 0. Tagging whenever a target is in reach earns
+    ``p_target`` per agent-step; never tagging earns 0."""
+
+    def __init__(self, n_agents: int = 4, n_actions: int = 6, p_target: float = 0.2,
+                 penalty: float = 0.2, max_cycles: int = 10):  # fmt: skip
+        super().__init__(n_agents, obs_dim=1, n_actions=n_actions)
+        self.p_target, self.penalty, self.max_cycles = p_target, penalty, max_cycles
+
+    def _start(self):
+        self._targets = self._rng.random(self.n_agents) < self.p_target
+        return self._targets[:, None].astype(np.float32)
+
+    def step_arrays(self, actions):
+        tags = actions == self.shared_action_space.n - 1
+        rewards = np.where(tags, np.where(self._targets, 1.0, -self.penalty), 0.0).astype(np.float32)
+        self._t += 1
+        truncated = np.full(self.n_agents, self._t >= self.max_cycles)
+        return self._start(), rewards, np.zeros(self.n_agents, dtype=bool), truncated, {}
+
+
+def costly_tag_env() -> TagEnv:
+    """The tag task of the learning tests: 9 actions, a target in reach 10 % of the time, a 0.5 penalty."""
+    return TagEnv(4, n_actions=9, p_target=0.1, penalty=0.5)
+
+
+ALGORITHMS = {"SoftHGRN": SoftHGRN, "SACHGRN": SACHGRN}
+
+
+def train_on(algorithm: str, make_env, timesteps: int, seed: int = 0, policy_kwargs=None, **kwargs):
+    """A small model of ``algorithm`` (``"SoftHGRN"`` or ``"SACHGRN"``) trained for ``timesteps``
+    agent-steps on 4 copies of ``make_env()``; ``kwargs`` override the algorithm's arguments."""
+    options = dict(
+        learning_starts=256, batch_size=16, train_freq=1, target_entropy_ratio=0.05, seed=seed,
+        policy_kwargs=dict(hidden_dim=32, n_heads=2, **(policy_kwargs or {})),
+    )  # fmt: skip
+    options.update(kwargs)
+    env = make_graph_vec_env(make_env, n_envs=4, seed=seed)
+    return ALGORITHMS[algorithm]("GraphPolicy", env, **options).learn(timesteps)
+
+
+def greedy_return(model, make_env, n_episodes: int = 16, seed: int = 100) -> float:
+    """Mean team return of ``model``'s greedy actions over ``n_episodes`` episodes of ``make_env()``."""
+    env = make_graph_vec_env(make_env, n_envs=1, seed=seed)
+    return evaluate_graph_policy(model, env, n_eval_episodes=n_episodes, deterministic=True)[0]

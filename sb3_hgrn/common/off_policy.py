@@ -59,6 +59,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
     Units follow SB3: ``total_timesteps``, ``learning_starts`` and ``buffer_size`` count
     agent-steps (one vec-step of ``n_copies`` copies of ``n_agents`` agents is
     ``n_copies * n_agents`` of them), ``train_freq`` counts vec-steps, ``batch_size`` counts graphs,
+    ``gradient_steps=-1`` takes one gradient step per graph collected (``n_copies`` per vec-step),
     ``target_update_interval`` counts gradient steps and ``log_interval`` counts team episodes (one
     per env copy).
 
@@ -313,9 +314,14 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         learning_starts: int = 0,
         log_interval: int | None = None,
     ) -> RolloutReturn:
-        """Step all env copies ``train_freq`` times, storing whole graphs with their recurrent state."""
+        """Step all env copies ``train_freq`` times, storing whole graphs with their recurrent state.
+
+        The returned step count is the number of graphs collected (vec-steps x copies): SB3's
+        ``gradient_steps=-1`` then takes one gradient step per graph, as ``batch_size`` counts graphs.
+        """
         self.policy.set_training_mode(False)
         n_steps, n_episodes = 0, 0
+        n_copies = env.num_envs // self.n_agents
         callback.on_rollout_start()
         while should_collect_more_steps(train_freq, n_steps, n_episodes):
             hidden_in = self._last_hidden * (1.0 - self._last_episode_starts)[:, None]
@@ -330,7 +336,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
             n_steps += 1
             callback.update_locals(locals())
             if not callback.on_step():
-                return RolloutReturn(n_steps * env.num_envs, n_episodes, continue_training=False)
+                return RolloutReturn(n_steps * n_copies, n_episodes, continue_training=False)
 
             next_obs, terminated = self._final_observations(new_obs, dones, infos)
             replay_buffer.add(
@@ -349,7 +355,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
                 if log_interval is not None and self._episode_num % log_interval == 0:
                     self.dump_logs()
         callback.on_rollout_end()
-        return RolloutReturn(n_steps * env.num_envs, n_episodes, continue_training=True)
+        return RolloutReturn(n_steps * n_copies, n_episodes, continue_training=True)
 
     def learn(
         self,

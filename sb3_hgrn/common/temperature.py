@@ -1,10 +1,13 @@
 """Learned temperature that keeps a policy's action entropy at a target, shared by the soft algorithms.
 
 The target is ``target_entropy_ratio * log(n_actions)``. After each critic step the mean policy
-entropy ``H`` of the batch is measured and alpha takes one optimiser step on
-``loss = alpha * (H - H_target)``: its gradient ``H - H_target`` lowers alpha while the policy is
-more random than the target and raises it while the policy is too greedy. As in the paper, the
-gradient is clipped to ``max_grad_ratio * alpha`` in magnitude and alpha stays above ``min_alpha``.
+entropy ``H`` of the batch is measured and the learned parameter (alpha, or ``log(alpha)`` with
+``log_space``) takes one optimiser step on ``loss = param * (H - H_target)``: its gradient
+``H - H_target`` lowers alpha while the policy is more random than the target and raises it while
+the policy is too greedy. As in the paper, one update changes alpha by at most ``max_step_ratio``
+(1 %) of its value, whatever the optimiser: the bound applies to the step the optimiser took, not
+to the gradient (Adam normalises gradients, so a gradient bound would not bound its steps). Alpha
+stays above ``min_alpha``.
 
 With several agent groups every group has its own alpha and its own target from its own action
 count, and each group's alpha follows the mean entropy of that group's agents.
@@ -86,7 +89,7 @@ class TemperatureController:
     :param target: target entropy in nats of every group ``(n_groups,)``.
     :param optimizer: ``"adam"`` or ``"sgd"``.
     :param learning_rate: learning rate of that optimiser.
-    :param max_grad_ratio: gradients are clipped to ``max_grad_ratio * alpha`` in magnitude.
+    :param max_step_ratio: one update moves alpha within ``[(1 - r) alpha, (1 + r) alpha]``.
     :param min_alpha: lower bound of alpha.
     """
 
@@ -96,36 +99,35 @@ class TemperatureController:
         target: float | th.Tensor,
         optimizer: str = "adam",
         learning_rate: float = 1e-3,
-        max_grad_ratio: float = 0.01,
+        max_step_ratio: float = 0.01,
         min_alpha: float = 1e-5,
     ):
         if optimizer not in ALPHA_OPTIMIZERS:
             raise ValueError(f"alpha_optimizer must be one of {sorted(ALPHA_OPTIMIZERS)}, got {optimizer!r}.")
         self.temperature = temperature
         self.target = th.as_tensor(target, dtype=th.float32).reshape(-1)
-        self.max_grad_ratio = max_grad_ratio
+        if not 0.0 < max_step_ratio < 1.0:
+            raise ValueError(f"max_step_ratio must lie in (0, 1), got {max_step_ratio}.")
+        self.max_step_ratio = max_step_ratio
         self.min_alpha = min_alpha
         self.optimizer = ALPHA_OPTIMIZERS[optimizer]([temperature.param], lr=learning_rate)
 
     def update(self, entropy: th.Tensor) -> float:
         """One step toward the target given the measured mean entropy of every group ``(n_groups,)``
         (NaN for a group absent from the batch: its alpha stays); returns alpha's mean gradient."""
+        temperature = self.temperature
         self.optimizer.zero_grad()
         entropy = entropy.detach().reshape(-1)
         gap = th.where(th.isnan(entropy), th.zeros_like(entropy), entropy - self.target.to(entropy))
-        loss = (self.temperature.alpha * gap).sum()
+        before = temperature.alpha.detach().clone()
+        loss = (temperature.param * gap).sum()  # d loss / d param = H - H_target
         loss.backward()
-        grad = self.temperature.param.grad
-        gradient = float(grad.mean())
-        if self.temperature.log_space:
-            bound = th.full_like(grad, self.max_grad_ratio)  # a step in log(alpha) is already relative
-        else:
-            bound = self.max_grad_ratio * self.temperature.alpha.detach()
-        grad.copy_(th.minimum(th.maximum(grad, -bound), bound))
+        gradient = float(temperature.param.grad.mean())
         self.optimizer.step()
         with th.no_grad():
-            if self.temperature.log_space:
-                self.temperature.param.clamp_(min=math.log(self.min_alpha))
-            else:
-                self.temperature.param.clamp_(min=self.min_alpha)
+            alpha = temperature.alpha.clamp(
+                before * (1.0 - self.max_step_ratio), before * (1.0 + self.max_step_ratio)
+            )
+            alpha = alpha.clamp(min=self.min_alpha)
+            temperature.param.copy_(alpha.log() if temperature.log_space else alpha)
         return gradient

@@ -56,7 +56,7 @@ from sb3_hgrn.presets import PRESETS, TABLE1
 
 FIGURES = {
     "ctc": "CTC learning curves: HGAT models against their homogeneous-attention twins",
-    "alpha": "alpha, its gradient and the action entropy during Soft-HGRN training on Surviving",
+    "alpha": "alpha, its gradient and the action entropy during Soft-HGRN and SAC-HGRN training on Surviving",
     "transfer": "team return per agent at other agent counts than the trained one, on Surviving",
     "p_alpha": "Soft-HGRN team return against the target-entropy ratio p_alpha, on Surviving",
 }
@@ -73,7 +73,7 @@ HGAT_TWINS = {"dgn": "hgn", "soft_dgrn": "soft_hgrn", "sac_dgrn": "sac_hgrn"}
 
 DEFAULT_PRESETS = {
     "ctc": ("hgn", "dgn", "soft_hgrn", "soft_dgrn", "sac_hgrn", "sac_dgrn"),
-    "alpha": ("soft_hgrn",),
+    "alpha": ("soft_hgrn", "sac_hgrn"),
     "transfer": TABLE1,
     "p_alpha": ("soft_hgrn",),
 }
@@ -533,9 +533,7 @@ def draw_alpha(done: Sequence[Job]) -> tuple[list[dict[str, Any]], Figure]:
     axes[0].set_title("temperature alpha", fontsize=10)
     axes[1].axhline(0.0, color="grey", lw=1)
     axes[1].set_ylabel("gradient (nats)")
-    axes[1].set_title(
-        "alpha's gradient d[alpha (H - H_target)] / d alpha = H - H_target, before clipping", fontsize=10
-    )
+    axes[1].set_title("alpha's gradient H - H_target (each update moves alpha by at most 1 %)", fontsize=10)
     axes[2].set_ylabel("entropy (nats)")
     axes[2].set_title("mean action entropy H of the training batches and its target H_target", fontsize=10)
     axes[2].set_xlabel("agent-steps of training (all agents of all env copies)")

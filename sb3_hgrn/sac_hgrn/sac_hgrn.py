@@ -15,26 +15,53 @@ from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
 from sb3_hgrn.common.temperature import categorical_entropy
 from sb3_hgrn.sac_hgrn.policies import SACHGRNPolicy
 
-ACTOR_LOSSES = ("standard", "policy_gradient")
+ACTOR_LOSSES = ("boltzmann", "standard", "policy_gradient")
+
+
+def boltzmann_divergence(log_probs: th.Tensor, q_values: th.Tensor, alpha: th.Tensor | None) -> th.Tensor:
+    """``KL(softmax(Q / alpha) || pi)`` per agent ``(batch, n_agents)`` from the policy's log-probabilities
+    and Q-values ``(batch, n_agents, n_actions)``; ``alpha`` ``(1,)`` or per agent ``(..., 1)``, or
+    ``None`` for the greedy limit (the one-hot of the best action).
+
+    Its gradient on the logits is ``pi - softmax(Q / alpha)``: an action whose probability has fallen
+    to about zero still gets the full pull of the Boltzmann policy toward its Q-value (the gradient
+    of the standard loss ``sum_a pi(a) (alpha log pi(a) - Q(a))`` shrinks with ``pi(a)``).
+    """
+    if alpha is None:
+        target = F.one_hot(q_values.argmax(dim=-1), q_values.shape[-1]).to(log_probs.dtype)
+    else:
+        target = th.softmax(q_values / alpha, dim=-1)
+    return (th.special.xlogy(target, target) - target * log_probs).sum(dim=-1)
 
 
 class SACHGRN(GraphOffPolicyAlgorithm):
     """SAC-HGRN (discrete soft actor-critic with HGRN actor and critics, Ye et al., AAAI 2022).
 
     Critic target: ``r + gamma * (1 - terminated) * sum_a pi(a|o') (Q_target(o', a) - alpha log pi(a|o'))``
-    (the minimum over critics when there are several). Actor loss ``"standard"``:
-    ``sum_a pi(a|o) (alpha log pi(a|o) - Q(o, a))``; ``"policy_gradient"`` (the paper's form):
-    ``-log pi(a|o) (Q(o, a) - alpha log pi(a|o))`` for ``a`` sampled from the policy. Each gradient step
-    updates the critics, then the actor, then alpha (toward ``target_entropy_ratio * log|A|`` on the
-    actor's entropy). With ``stochastic=False`` (``-S``) the actor acts greedily with epsilon-greedy
-    exploration, the target follows the greedy action and the actor maximises ``sum_a pi(a|o) Q(o, a)``.
+    (the minimum over critics when there are several). Every actor loss has the same minimiser, the
+    Boltzmann policy ``softmax(Q(o, .) / alpha)``:
+
+    - ``"boltzmann"`` (default): ``KL(softmax(Q(o, .) / alpha) || pi(.|o))``, whose gradient on the
+      logits is ``pi - softmax(Q / alpha)`` (see :func:`boltzmann_divergence`);
+    - ``"standard"`` (discrete SAC): ``sum_a pi(a|o) (alpha log pi(a|o) - Q(o, a))``, i.e.
+      ``KL(pi || softmax(Q / alpha))`` up to a constant; its gradient on an action's logit is
+      proportional to that action's probability, so an action the actor dropped early (a costly tag,
+      a last-step choice) is hardly ever taken up again (docs/results.md);
+    - ``"policy_gradient"`` (the paper's form): ``-log pi(a|o) (Q(o, a) - alpha log pi(a|o))`` for
+      ``a`` sampled from the policy.
+
+    Each gradient step updates the critics, then the actor, then alpha (toward
+    ``target_entropy_ratio * log|A|`` on the actor's entropy). With ``stochastic=False`` (``-S``) the
+    actor acts greedily with epsilon-greedy exploration, the target follows the greedy action and the
+    actor moves toward the greedy action of the critic (``"boltzmann"``: cross-entropy to it; the
+    other losses maximise ``sum_a pi(a|o) Q(o, a)``).
 
     Units and the shared options: see :class:`~sb3_hgrn.soft_hgrn.SoftHGRN`. Critic targets are
     copied every ``target_update_interval`` gradient steps (``tau=1.0``); the original's
     ``tau=0.01`` (used by ``presets.make_model(..., paper=True)``) left the critic behind a nearly
     frozen target at CPU budgets (docs/results.md).
 
-    :param actor_loss: ``"standard"`` or ``"policy_gradient"``.
+    :param actor_loss: ``"boltzmann"``, ``"standard"`` or ``"policy_gradient"``.
     :param policy_kwargs: network options for both networks, plus ``n_critics``, ``actor_kwargs``
         and ``critic_kwargs`` (options of one network only).
     """
@@ -61,7 +88,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
         alpha_optimizer: str = "adam",
         alpha_learning_rate: float = 1e-3,
         stochastic: bool = True,
-        actor_loss: str = "standard",
+        actor_loss: str = "boltzmann",
         exploration_fraction: float = 0.1,
         exploration_initial_eps: float | None = None,
         exploration_final_eps: float | None = None,
@@ -125,8 +152,10 @@ class SACHGRN(GraphOffPolicyAlgorithm):
 
     def _policy_loss(self, logits: th.Tensor, q_values: th.Tensor, alpha: th.Tensor) -> th.Tensor:
         """Actor loss from its logits and the (detached) critic Q-values ``(batch, n_agents, n_actions)``."""
-        alpha = alpha if self.stochastic else th.zeros_like(alpha)
         log_probs = th.log_softmax(logits, dim=-1)
+        if self.actor_loss == "boltzmann":
+            return boltzmann_divergence(log_probs, q_values, alpha if self.stochastic else None).mean()
+        alpha = alpha if self.stochastic else th.zeros_like(alpha)
         if self.actor_loss == "standard":
             return (log_probs.exp() * (alpha * log_probs - q_values)).sum(dim=-1).mean()
         actions = th.distributions.Categorical(logits=logits.detach()).sample().unsqueeze(-1)
