@@ -81,7 +81,8 @@ def dense_attention(
         segment = segment.softmax(dim=-1) * mask  # zero for a row without entries in the segment
         weights = weights + segment
         messages.append(torch.einsum("bihj,bjhd->bihd", segment, v).reshape(batch, n, heads * dim))
-    return F.relu(by_group(layer.output, torch.cat(messages, dim=-1))), weights
+    out = by_group(layer.output, torch.cat(messages, dim=-1))
+    return (F.relu(out) if layer.n_messages == 1 else out), weights
 
 
 def dense_list_weights(weights: torch.Tensor, neighbors: torch.Tensor) -> torch.Tensor:
@@ -349,7 +350,8 @@ def hetero_layer(request) -> GraphAttention:
 def hand_hgat(layer: GraphAttention, x: torch.Tensor) -> torch.Tensor:
     """HGAT written out agent by agent: receiver-owned query, sender-owned key/value, one softmax
     per sender group over the listed neighbours (self included), zero message from a group without
-    neighbours, messages concatenated in group order, receiver-owned output map."""
+    neighbours, then the receiver's ReLU(Linear) per sender group's message and one Linear over
+    their concatenation in group order."""
     groups = GROUPS[0].tolist()
     heads = layer.n_heads
     attended = {0: [0, 1, 2], 1: [1], 2: [2, 0, 3], 3: [3, 2]}
@@ -370,7 +372,9 @@ def hand_hgat(layer: GraphAttention, x: torch.Tensor) -> torch.Tensor:
             )
             weights = torch.softmax((keys * q).sum(-1) / math.sqrt(HEAD_DIM), dim=0)  # (senders, heads)
             messages.append((weights.unsqueeze(-1) * values).sum(0).reshape(-1))
-        out.append(F.relu(layer.output[groups[i]](torch.cat(messages))))
+        receiver = layer.output[groups[i]]
+        mapped = [F.relu(pair(message)) for pair, message in zip(receiver.per_sender, messages, strict=True)]
+        out.append(receiver.combine(torch.cat(mapped)))
     return torch.stack(out)
 
 

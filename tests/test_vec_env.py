@@ -95,3 +95,14 @@ def test_registered_surviving_env_and_render():
     frame = env.render()
     assert frame.ndim == 3 and frame.shape[2] == 3 and frame.dtype == np.uint8
     assert env.render_mode == "rgb_array"
+
+
+def test_neighbour_indices_out_of_range_are_rejected():
+    class WrongGraph(NeighborBitEnv):
+        def neighbors(self):
+            graph = super().neighbors()
+            graph[0, 1] = self.n_agents  # no such agent
+            return graph
+
+    with pytest.raises(ValueError, match=r"agent indices in \[-1, 3\]"):
+        make_graph_vec_env(WrongGraph).reset()

@@ -378,7 +378,7 @@ class GraphAttention(nn.Module):
     With several agent groups (HGAT) the receiver's group owns the query and the output map, the
     sender's group owns the key and value; ``across_groups=True`` attends over the neighbours of each
     sender group separately, giving one message per group (zero if the agent has no neighbour of that
-    group), and maps the concatenated messages ``(n_groups * n_heads * head_dim)`` to ``out_dim``;
+    group), and maps the messages to ``out_dim`` with the receiver group's :class:`GroupMessageMap`;
     ``across_groups=False`` attends only over neighbours of the agent's own group. With one group
     both are plain graph attention.
 
@@ -405,11 +405,14 @@ class GraphAttention(nn.Module):
         self.head_dim = head_dim
         self.across_groups = across_groups
         width = n_heads * head_dim
-        messages = n_groups if across_groups else 1
+        self.n_messages = n_groups if across_groups else 1
         self.query = Grouped(lambda: nn.Linear(in_dim, width), n_groups)
         self.key = Grouped(lambda: nn.Linear(in_dim, width), n_groups)
         self.value = Grouped(lambda: nn.Linear(in_dim, width), n_groups)
-        self.output = Grouped(lambda: nn.Linear(messages * width, out_dim), n_groups)
+        if self.n_messages == 1:
+            self.output = Grouped(lambda: nn.Linear(width, out_dim), n_groups)
+        else:
+            self.output = Grouped(lambda: GroupMessageMap(self.n_messages, width, out_dim), n_groups)
 
     def project(self, x: Tensor, graph: GraphBatch) -> tuple[Tensor, Tensor, Tensor]:
         """Queries, keys and values ``(batch * n_agents, n_heads, head_dim)`` of ``x``
@@ -443,10 +446,36 @@ class GraphAttention(nn.Module):
             mixed, weights = _NeighborAttention.apply(
                 query.to(dtype), key.to(dtype), value.to(dtype), graph.pattern(self.n_heads), segments
             )
-        out = F.relu(self.output(mixed.reshape(batch, n_agents, -1), graph=graph))
+        out = self.output(mixed.reshape(batch, n_agents, -1), graph=graph)
+        if self.n_messages == 1:
+            out = F.relu(out)
         if return_attention:
             return out, graph.list_weights(weights).reshape(batch, n_agents, self.n_heads, -1)
         return out
+
+
+class GroupMessageMap(nn.Module):
+    """The HGAT output map of one receiver group: the message of each sender group goes through its
+    own ``ReLU(Linear(width -> out_dim))``, and their concatenation in group order through
+    ``Linear(n_senders * out_dim -> out_dim)`` without activation (the paper's
+    ``g_i = W (g_i^1 | ... | g_i^K)`` after a map per receiver-sender pair, as in the original code).
+
+    :param n_senders: number of sender groups.
+    :param width: features of one message.
+    :param out_dim: output features.
+    """
+
+    def __init__(self, n_senders: int, width: int, out_dim: int) -> None:
+        super().__init__()
+        self.per_sender = nn.ModuleList(nn.Linear(width, out_dim) for _ in range(n_senders))
+        self.combine = nn.Linear(n_senders * out_dim, out_dim)
+
+    def forward(self, messages: Tensor) -> Tensor:
+        """:param messages: ``(..., n_senders * width)``, sender groups in order.
+        :return: ``(..., out_dim)``."""
+        parts = messages.chunk(len(self.per_sender), dim=-1)
+        mapped = [F.relu(layer(part)) for layer, part in zip(self.per_sender, parts, strict=True)]
+        return self.combine(torch.cat(mapped, dim=-1))
 
 
 class MeanCommunication(nn.Module):

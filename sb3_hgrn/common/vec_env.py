@@ -269,6 +269,11 @@ class GraphVecEnv(VecEnv):
                 raise ValueError(
                     f"neighbors() must return shape {expected} (max_neighbors), got {graph.shape}."
                 )
+            if graph.size and (graph.min() < -1 or graph.max() >= self.n_agents):
+                raise ValueError(
+                    f"neighbors() must return agent indices in [-1, {self.n_agents - 1}], got values "
+                    f"in [{graph.min()}, {graph.max()}]."
+                )
         stacked = {
             "obs": np.concatenate(observations),
             "neighbors": np.concatenate(neighbors).astype(np.int32, copy=False),

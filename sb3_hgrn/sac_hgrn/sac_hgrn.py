@@ -173,13 +173,13 @@ class SACHGRN(GraphOffPolicyAlgorithm):
             actor_state, *critic_states = policy.split_state(batch.hidden)
             next_actor_state, *next_critic_states = policy.split_state(batch.next_hidden)
             alpha = policy.temperature.per_agent(batch.groups)
+            graph = policy.graph_batch(batch.neighbors, batch.groups)  # shared by actor and critics
             with th.no_grad():
-                next_logits, _ = policy.actor(
-                    batch.next_observations, batch.next_neighbors, next_actor_state, batch.groups
-                )
+                next_graph = policy.graph_batch(batch.next_neighbors, batch.groups)
+                next_logits, _ = policy.actor(batch.next_observations, next_graph, next_actor_state)
                 next_q = th.stack(
                     [
-                        target(batch.next_observations, batch.next_neighbors, state, batch.groups)[0]
+                        target(batch.next_observations, next_graph, state)[0]
                         for target, state in zip(policy.critic_targets, next_critic_states, strict=True)
                     ]
                 ).amin(dim=0)
@@ -187,7 +187,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
                 target_q = batch.rewards + self.gamma * (1.0 - batch.terminated) * next_value
 
             q_values = [
-                critic(batch.observations, batch.neighbors, state, batch.groups)[0]
+                critic(batch.observations, graph, state)[0]
                 for critic, state in zip(policy.critics, critic_states, strict=True)
             ]
             actions = batch.actions.unsqueeze(-1)
@@ -197,7 +197,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
             th.nn.utils.clip_grad_norm_(policy.critics.parameters(), self.max_grad_norm)
             policy.critic_optimizer.step()
 
-            logits, _ = policy.actor(batch.observations, batch.neighbors, actor_state, batch.groups)
+            logits, _ = policy.actor(batch.observations, graph, actor_state)
             min_q = th.stack([q.detach() for q in q_values]).amin(dim=0)
             actor_loss = self._policy_loss(logits, min_q, alpha)
             policy.actor_optimizer.zero_grad()

@@ -144,13 +144,13 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
             batch = self.replay_buffer.sample(batch_size)
             alpha = self.policy.temperature.per_agent(batch.groups)
             with th.no_grad():
-                next_q, _ = q_net_target(
-                    batch.next_observations, batch.next_neighbors, batch.next_hidden, batch.groups
-                )
+                next_graph = self.policy.graph_batch(batch.next_neighbors, batch.groups)
+                next_q, _ = q_net_target(batch.next_observations, next_graph, batch.next_hidden)
                 target_q = batch.rewards + self.gamma * (1.0 - batch.terminated) * self._next_value(
                     next_q, alpha
                 )
-            q_values, _ = q_net(batch.observations, batch.neighbors, batch.hidden, batch.groups)
+            graph = self.policy.graph_batch(batch.neighbors, batch.groups)
+            q_values, _ = q_net(batch.observations, graph, batch.hidden)
             taken_q = q_values.gather(-1, batch.actions.unsqueeze(-1)).squeeze(-1)
             loss = F.mse_loss(taken_q, target_q)
             self.policy.optimizer.zero_grad()
