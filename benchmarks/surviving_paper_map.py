@@ -1,0 +1,74 @@
+"""Learning curve of a preset on the paper's Surviving map, as the original code is measured.
+
+Run: python benchmarks/surviving_paper_map.py [--preset soft_hgrn] [--seeds 0 1 2] [--paper]
+     [--param KEY=VALUE ...]
+
+100 agents, 32 x 32 map, 8 resource points, 500-step episodes, one env copy. After every
+``--eval-every`` env steps (default 5,000, up to ``--env-steps`` 15,000) it prints the team return over
+4 episodes with 30 % epsilon-random actions (the original's test mode) and with the plain policy,
+and the wall time of training so far. ``--paper`` uses the original's network size and schedule
+(``make_model(..., paper=True)``). Two torch threads.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch as th
+
+from sb3_hgrn import evaluate_graph_policy, make_graph_vec_env
+from sb3_hgrn.experiments.config import parse_assignments
+from sb3_hgrn.experiments.runs import EpsilonRandomPolicy
+from sb3_hgrn.presets import make_model
+
+PAPER_MAP = dict(n_agents=100, map_size=32, n_resources=8, max_cycles=500)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--preset", default="soft_hgrn")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--env-steps", type=int, default=15_000)
+    parser.add_argument("--eval-every", type=int, default=5_000, help="env steps between evaluations")
+    parser.add_argument("--eval-episodes", type=int, default=4)
+    parser.add_argument("--paper", action="store_true", help="the original's network size and schedule")
+    parser.add_argument("--param", nargs="*", default=[], help="algorithm arguments, KEY=VALUE")
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    th.set_num_threads(args.threads)
+    n_agents = PAPER_MAP["n_agents"]
+    checkpoints = range(args.eval_every, args.env_steps + 1, args.eval_every)
+    curves: dict[int, list[tuple[float, float]]] = {step: [] for step in checkpoints}
+    for seed in args.seeds:
+        env = make_graph_vec_env("surviving_v0", n_envs=1, seed=seed, env_kwargs=PAPER_MAP)
+        eval_env = make_graph_vec_env("surviving_v0", n_envs=1, seed=seed + 1000, env_kwargs=PAPER_MAP)
+        model = make_model(args.preset, env, paper=args.paper, seed=seed, **parse_assignments(args.param))
+        trained, train_time = 0, 0.0
+        for step in checkpoints:
+            start = time.time()
+            model.learn((step - trained) * n_agents, reset_num_timesteps=trained == 0)
+            train_time += time.time() - start
+            trained = step
+            noisy = EpsilonRandomPolicy(model, 0.3, seed=seed)
+            eps_return = evaluate_graph_policy(noisy, eval_env, n_eval_episodes=args.eval_episodes)[0]
+            plain = evaluate_graph_policy(model, eval_env, n_eval_episodes=args.eval_episodes)[0]
+            curves[step].append((eps_return, plain))
+            print(
+                f"seed {seed}  {step:6d} env steps ({model._n_updates} updates)  eps 0.3: {eps_return:8.1f}"
+                f"  plain: {plain:8.1f}  training {train_time:6.0f} s",
+                flush=True,
+            )
+    for step, results in curves.items():
+        eps_returns, plain_returns = np.array(results).T
+        print(
+            f"{step:6d} env steps: eps 0.3 {eps_returns.mean():8.1f} +- {eps_returns.std():6.1f}"
+            f"  plain {plain_returns.mean():8.1f} +- {plain_returns.std():6.1f}  ({len(results)} seeds)"
+        )
+
+
+if __name__ == "__main__":
+    main()
