@@ -124,5 +124,25 @@ def test_logs_actor_and_critic_losses():
 def test_bad_arguments():
     with pytest.raises(ValueError, match="actor_loss"):
         quick_model(bit_vec_env(n_envs=1), actor_loss="ppo")
+    with pytest.raises(ValueError, match="alpha_entropy"):
+        quick_model(bit_vec_env(n_envs=1), alpha_entropy="critic")
     with pytest.raises(ValueError, match="n_critics"):
         quick_model(bit_vec_env(n_envs=1), policy_kwargs=dict(n_critics=0))
+
+
+@pytest.mark.parametrize("alpha_entropy", ["actor", "boltzmann"])
+def test_alpha_steers_the_entropy_it_is_told(alpha_entropy):
+    """With a critic whose Q-values are all 0 its Boltzmann policy is uniform (entropy log 2 for
+    every agent), while the actor's entropy is whatever its initial logits give."""
+    model = quick_model(bit_vec_env(n_envs=2), alpha_entropy=alpha_entropy, learning_starts=10**6)
+    model.learn(8 * 10)  # fills the buffer without training
+    head = model.policy.critics[0].head[0]
+    with th.no_grad():
+        head.weight.zero_()
+        head.bias.zero_()
+    steered = []
+    update = model._update_temperature
+    model._update_temperature = lambda entropy, groups: steered.append(entropy) or update(entropy, groups)
+    model.train(gradient_steps=1, batch_size=4)
+    is_uniform = th.allclose(steered[0], th.full_like(steered[0], math.log(2)))
+    assert is_uniform == (alpha_entropy == "boltzmann")

@@ -16,6 +16,7 @@ from sb3_hgrn.common.temperature import categorical_entropy
 from sb3_hgrn.sac_hgrn.policies import SACHGRNPolicy
 
 ACTOR_LOSSES = ("boltzmann", "standard", "policy_gradient")
+ALPHA_ENTROPIES = ("actor", "boltzmann")
 
 
 def boltzmann_divergence(log_probs: th.Tensor, q_values: th.Tensor, alpha: th.Tensor | None) -> th.Tensor:
@@ -51,7 +52,8 @@ class SACHGRN(GraphOffPolicyAlgorithm):
       ``a`` sampled from the policy.
 
     Each gradient step updates the critics, then the actor, then alpha (toward
-    ``target_entropy_ratio * log|A|`` on the actor's entropy). With ``stochastic=False`` (``-S``) the
+    ``target_entropy_ratio * log|A|`` on the actor's entropy, or on that of the critic's Boltzmann
+    policy with ``alpha_entropy="boltzmann"``). With ``stochastic=False`` (``-S``) the
     actor acts greedily with epsilon-greedy exploration, the target follows the greedy action and the
     actor moves toward the greedy action of the critic (``"boltzmann"``: cross-entropy to it; the
     other losses maximise ``sum_a pi(a|o) Q(o, a)``).
@@ -62,6 +64,9 @@ class SACHGRN(GraphOffPolicyAlgorithm):
     frozen target at CPU budgets (docs/results.md).
 
     :param actor_loss: ``"boltzmann"``, ``"standard"`` or ``"policy_gradient"``.
+    :param alpha_entropy: the entropy alpha steers toward the target: ``"actor"`` (the actor's, as in
+        the paper) or ``"boltzmann"`` (that of the critic's Boltzmann policy ``softmax(Q / alpha)``,
+        which every actor loss moves the actor toward; as in SoftHGRN).
     :param policy_kwargs: network options for both networks, plus ``n_critics``, ``actor_kwargs``
         and ``critic_kwargs`` (options of one network only).
     """
@@ -89,6 +94,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
         alpha_learning_rate: float = 1e-3,
         stochastic: bool = True,
         actor_loss: str = "boltzmann",
+        alpha_entropy: str = "actor",
         exploration_fraction: float = 0.1,
         exploration_initial_eps: float | None = None,
         exploration_final_eps: float | None = None,
@@ -104,6 +110,8 @@ class SACHGRN(GraphOffPolicyAlgorithm):
     ):
         if actor_loss not in ACTOR_LOSSES:
             raise ValueError(f"actor_loss must be one of {ACTOR_LOSSES}, got {actor_loss!r}.")
+        if alpha_entropy not in ALPHA_ENTROPIES:
+            raise ValueError(f"alpha_entropy must be one of {ALPHA_ENTROPIES}, got {alpha_entropy!r}.")
         super().__init__(
             policy,
             env,
@@ -135,6 +143,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
             device=device,
         )
         self.actor_loss = actor_loss
+        self.alpha_entropy = alpha_entropy
         if _init_setup_model:
             self._setup_model()
 
@@ -205,7 +214,8 @@ class SACHGRN(GraphOffPolicyAlgorithm):
             th.nn.utils.clip_grad_norm_(policy.actor.parameters(), self.max_grad_norm)
             policy.actor_optimizer.step()
 
-            entropy, alpha_gradient = self._update_temperature(categorical_entropy(logits), batch.groups)
+            steered = logits if self.alpha_entropy == "actor" else min_q / alpha
+            entropy, alpha_gradient = self._update_temperature(categorical_entropy(steered), batch.groups)
             if alpha_gradient is not None:
                 alpha_gradients.append(alpha_gradient)
             critic_losses.append(critic_loss.item())
