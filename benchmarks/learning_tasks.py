@@ -2,11 +2,12 @@
 
 Run: python benchmarks/learning_tasks.py [--seeds 0 1 2] [--tasks ...] [--settings ...]
 
-Each task needs one piece of the learner (``tests/toy_envs.py`` describes them): ``invest`` delayed
-rewards and stopping at terminations (optimum 8.8; no bootstrapping 4.0; bootstrapping through the
-termination 6.0), ``invest_time_limit`` bootstrapping at time limits (right: 6.0; treating them as
-terminations: 8.8), ``tag`` a costly but necessary action (optimum 4 in expectation, never tagging 0),
-``memory`` a cue recalled two steps later (4.0 with memory, 2 by guessing). The models and budgets
+Each task needs one piece of the learner (``tests/toy_envs.py`` describes them): ``invest``
+delayed rewards and stopping at terminations (optimum 8.8; no bootstrapping 4.0; bootstrapping
+through the termination 6.0; ``invest_gamma_0.95`` the same with the default discount),
+``invest_time_limit`` bootstrapping at time limits (right: 6.0; treating them as terminations:
+8.8), ``tag`` a costly but necessary action (optimum 4 in expectation, never tagging 0), ``memory``
+a cue recalled two steps later (4.0 with memory, 2 by guessing). The models and budgets
 are those of ``tests/test_learning.py``; one torch thread.
 """
 
@@ -28,6 +29,7 @@ TASKS = {
     # name: (env factory, agent-steps, SACHGRN agent-steps, algorithm overrides, evaluation episodes)
     "invest": (lambda: InvestEnv(4), 6_000, 6_000, dict(gamma=0.8), 16),
     "invest_time_limit": (lambda: InvestEnv(4, time_limit=True), 6_000, 6_000, dict(gamma=0.8), 16),
+    "invest_gamma_0.95": (lambda: InvestEnv(4), 6_000, 6_000, dict(gamma=0.95), 16),
     "tag": (costly_tag_env, 8_000, 8_000, {}, 32),
     "memory": (lambda: CueMemoryEnv(4, delay=1), 6_000, 12_000, {}, 16),
 }
