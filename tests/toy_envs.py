@@ -159,6 +159,10 @@ class _IndependentAgentsEnv(GraphParallelEnv):
         self._rng = np.random.default_rng()
         self._graph = np.arange(n_agents)[:, None]
 
+    def _start(self) -> np.ndarray:
+        """Draw what a new step shows and return the observations ``(n_agents, obs_dim)``."""
+        raise NotImplementedError
+
     def reset_arrays(self, seed=None, options=None):
         if seed is not None:
             self._rng = np.random.default_rng(seed)
