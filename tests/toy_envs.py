@@ -160,7 +160,7 @@ class _IndependentAgentsEnv(GraphParallelEnv):
         self._graph = np.arange(n_agents)[:, None]
 
     def _start(self) -> np.ndarray:
-        """Draw what a new step shows and return the observations ``(n_agents, obs_dim)``."""
+        """Set up a new episode and return its first observations ``(n_agents, obs_dim)``."""
         raise NotImplementedError
 
     def reset_arrays(self, seed=None, options=None):
