@@ -1,7 +1,7 @@
 """Learning curve of a preset on the paper's Surviving map, as the original code is measured.
 
 Run: python benchmarks/surviving_paper_map.py [--preset soft_hgrn] [--seeds 0 1 2] [--paper]
-     [--param KEY=VALUE ...]
+     [--param KEY=VALUE ...] [--save PREFIX]
 
 100 agents, 32 x 32 map, 8 resource points, 500-step episodes, one env copy. After every
 ``--eval-every`` env steps (default 5,000, up to ``--env-steps`` 15,000) it prints the team return over
@@ -38,6 +38,7 @@ def main() -> None:
     parser.add_argument("--paper", action="store_true", help="the original's network size and schedule")
     parser.add_argument("--param", nargs="*", default=[], help="algorithm arguments, KEY=VALUE")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--save", help="save each seed's final model as SAVE_seed<S>.zip")
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     n_agents = PAPER_MAP["n_agents"]
@@ -62,6 +63,8 @@ def main() -> None:
                 f"  plain: {plain:8.1f}  training {train_time:6.0f} s",
                 flush=True,
             )
+        if args.save:
+            model.save(f"{args.save}_seed{seed}.zip")
     for step, results in curves.items():
         eps_returns, plain_returns = np.array(results).T
         print(

@@ -1,0 +1,75 @@
+"""A trained Surviving model run frozen against the same model trained on, on the paper's map.
+
+Run: python benchmarks/frozen_policy.py MODEL.zip [--episodes 2] [--reset-every 0 1 20] [--seed 0]
+
+``MODEL.zip`` is a SoftHGRN or SACHGRN model of ``benchmarks/surviving_paper_map.py --save``.
+For each ``--reset-every`` value (0: never) one episode runs with the frozen model, its recurrent
+state reset every that many steps, and prints the team return, the team reward per 50 steps and
+the share of each action. Then the model collects ``--episodes`` episodes with its weights frozen
+(``gradient_steps=0``) and ``--episodes`` more while it is trained on as in ``learn`` (from an empty
+buffer, after 32 env steps of random actions), and prints their team returns.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch as th
+
+from sb3_hgrn import make_graph_vec_env
+from sb3_hgrn.experiments.runs import algorithm_of_zip
+
+PAPER_MAP = dict(n_agents=100, map_size=32, n_resources=8, max_cycles=500)
+
+
+def frozen_episode(model, seed: int, reset_every: int) -> str:
+    """One episode of the frozen model on a fresh env: its return, reward per 50 steps, action shares."""
+    env = make_graph_vec_env("surviving_v0", n_envs=1, seed=seed, env_kwargs=PAPER_MAP)
+    obs, state, starts = env.reset(), None, np.ones(env.num_envs, dtype=bool)
+    rewards, counts = [], np.zeros(env.action_space.n)
+    for step in range(PAPER_MAP["max_cycles"]):
+        if reset_every and step % reset_every == 0:
+            starts = np.ones(env.num_envs, dtype=bool)
+        actions, state = model.predict(obs, state=state, episode_start=starts)
+        counts += np.bincount(actions, minlength=counts.size)
+        obs, reward, starts, _ = env.step(actions)
+        rewards.append(reward.sum())
+    per_50 = np.add.reduceat(rewards, np.arange(0, len(rewards), 50)).round().astype(int).tolist()
+    shares = (counts / counts.sum()).round(3).tolist()
+    return f"team return {sum(rewards):.0f}; per 50 steps {per_50}; action shares {shares}"
+
+
+def collected_returns(model, seed: int, episodes: int, train: bool) -> list[int]:
+    """Team returns of ``episodes`` episodes collected by ``learn``, with or without updates."""
+    env = make_graph_vec_env("surviving_v0", n_envs=1, seed=seed, env_kwargs=PAPER_MAP)
+    model.set_env(env)
+    model.learning_starts = 32 * env.num_envs if train else 0
+    model.gradient_steps = 1 if train else 0
+    model._team_episodes.clear()
+    model.learn(episodes * PAPER_MAP["max_cycles"] * env.num_envs)
+    return [round(episode["r"]) for episode in model._team_episodes]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("model")
+    parser.add_argument("--episodes", type=int, default=2)
+    parser.add_argument("--reset-every", type=int, nargs="+", default=[0, 1, 20])
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    th.set_num_threads(args.threads)
+    model = algorithm_of_zip(Path(args.model)).load(args.model)
+    for reset_every in args.reset_every:
+        figures = frozen_episode(model, args.seed, reset_every)
+        print(f"frozen, memory reset every {reset_every or 'never'}: {figures}")
+    print(f"collected frozen: {collected_returns(model, args.seed, args.episodes, train=False)}")
+    print(f"collected while trained on: {collected_returns(model, args.seed, args.episodes, train=True)}")
+
+
+if __name__ == "__main__":
+    main()
