@@ -56,24 +56,25 @@ def check_neighbors(neighbors: Tensor, n_agents: int) -> None:
             )
 
 
-def neighbor_entries(neighbors: Tensor, n_agents: int) -> tuple[Tensor, Tensor]:
+def neighbor_entries(neighbors: Tensor, n_agents: int) -> tuple[Tensor, Tensor, Tensor]:
     """The attention entries of neighbour lists in canonical order, without reading values on the host.
 
     An agent attends over itself and the distinct agents of its list: a list is a set, an agent
     listed several times is attended once (its first entry) and an entry naming the agent itself
     repeats the self-loop. Rows are the agents of the flattened ``(rows = batch * n_agents, ...)``
     tensors; an entry's target is the flat row ``b * n_agents + j`` of the agent it attends to. The
-    entries of a row come in canonical order: the attended targets ascending, then the entries that
-    take no part (empty, out of range, repeated), each pointing at its own dummy target
-    ``rows + e`` (``e`` its place in the row) past every agent. Every row of targets is thus sorted
-    and free of repeats, as CSR column indices must be. Lists wider than the graph are cut to
-    ``n_agents`` entries, which hold every attended agent.
+    entries that take no part (empty, out of range, repeated) each point at a row of their own that
+    no entry of the row attends to: with several graphs the row ``b' * n_agents + e`` of the next
+    graph ``b' = (b + 1) % batch`` (``e`` the entry's place in the row), with one graph a dummy
+    target ``rows + e`` past every agent (operands then get zero rows, see :func:`_padded`). The
+    entries of a row come sorted by target and free of repeats, as CSR column indices must be. Lists
+    wider than the graph are cut to ``n_agents`` entries, which hold every attended agent.
 
     :param neighbors: ``(batch, n_agents, max_neighbors)`` integer agent indices, ``-1`` = no entry.
     :param n_agents: number of agents per graph.
-    :return: ``targets`` ``(rows, E)`` with ``E = min(max_neighbors + 1, n_agents)``, below ``rows``
-        exactly at the entries taking part, and ``positions`` ``(rows, E)``: the list place every
-        entry comes from (0 = the agent itself, ``1 + m`` = list entry ``m``), distinct in a row.
+    :return: ``targets`` ``(rows, E)`` with ``E = min(max_neighbors + 1, n_agents)``, ``positions``
+        ``(rows, E)``: the list place every entry comes from (0 = the agent itself, ``1 + m`` = list
+        entry ``m``), distinct in a row, and ``mask`` ``(rows, E)``: True at the entries taking part.
     """
     batch, _, width = neighbors.shape
     rows = batch * n_agents
@@ -90,19 +91,25 @@ def neighbor_entries(neighbors: Tensor, n_agents: int) -> tuple[Tensor, Tensor]:
     places = torch.arange(width + 1, device=device)
     keys, moved = torch.where(taken, keys, rows + places).sort(dim=1)
     n_entries = min(width + 1, max(n_agents, 1))
-    targets = torch.where(keys[:, :n_entries] < rows, keys[:, :n_entries], rows + places[:n_entries])
-    return targets, positions.gather(1, moved[:, :n_entries])
+    keys, positions = keys[:, :n_entries], positions.gather(1, moved[:, :n_entries])
+    mask = keys < rows
+    if batch == 1:
+        return torch.where(mask, keys, rows + places[:n_entries]), positions, mask
+    next_graph = (torch.arange(rows, device=device) // n_agents + 1) % batch * n_agents
+    targets, order = torch.where(mask, keys, next_graph.unsqueeze(1) + places[:n_entries]).sort(dim=1)
+    return targets, positions.gather(1, order), mask.gather(1, order)
 
 
 class _Pattern(NamedTuple):
     """Sparsity pattern of the attention of one neighbour structure as CSR index tensors.
 
     Rows are ``(agent, head)`` pairs ``r * heads + h``, columns ``(target, head)`` pairs
-    ``t * heads + h`` over the ``rows + E`` targets of :func:`neighbor_entries` (the agents, then
-    the dummy targets): a ``(rows * heads, (rows + E) * heads)`` matrix with exactly ``E`` entries per
-    row, their columns sorted and distinct, so ``O(rows * heads * E)`` entries are stored. Dense
-    right-hand operands get zero rows for the dummy targets (:func:`_padded`); products with the
-    transposed matrix have ``(rows + E) * heads`` rows of which the first ``rows * heads`` are kept.
+    ``t * heads + h`` over the ``n_targets`` targets of :func:`neighbor_entries` (``rows``, or with
+    one graph ``rows + E``: the agents, then the dummy targets): a ``(rows * heads, n_targets *
+    heads)`` matrix with exactly ``E`` entries per row, their columns sorted and distinct, so
+    ``O(rows * heads * E)`` entries are stored. With dummy targets dense right-hand operands get zero
+    rows for them (:func:`_padded`) and products with the transposed matrix keep their first
+    ``rows * heads`` rows.
     ``transpose`` maps the values of the transposed matrix (rows by target, columns by source row)
     to their position in the values of the matrix itself.
     """
@@ -115,11 +122,11 @@ class _Pattern(NamedTuple):
     shape: tuple[int, int]
 
 
-def _attention_pattern(targets: Tensor, heads: int) -> _Pattern:
-    """Build the CSR pattern of attention over ``targets`` ``(rows, E)`` (see :func:`neighbor_entries`)
-    for ``heads`` heads; the values of a matrix on it are laid out as ``(rows, heads, E)``."""
+def _attention_pattern(targets: Tensor, heads: int, n_targets: int) -> _Pattern:
+    """Build the CSR pattern of attention over ``targets`` ``(rows, E)`` below ``n_targets`` (see
+    :func:`neighbor_entries`) for ``heads`` heads; the values of a matrix on it are laid out as
+    ``(rows, heads, E)``."""
     rows, n_entries = targets.shape
-    n_targets = rows + n_entries
     device = targets.device
     head = torch.arange(heads, device=device)
     col = (targets.unsqueeze(1) * heads + head.view(1, heads, 1)).reshape(-1)
@@ -160,8 +167,10 @@ def _sparse(crow: Tensor, col: Tensor, values: Tensor, shape: tuple[int, int]) -
 
 def _padded(pattern: _Pattern, dense: Tensor) -> Tensor:
     """``dense`` ``(rows * heads, head_dim)`` with zero rows for the dummy targets appended:
-    ``((rows + E) * heads, head_dim)``, a right-hand operand of the matrices on ``pattern``."""
-    return torch.cat([dense, dense.new_zeros(pattern.shape[1] - pattern.shape[0], dense.shape[1])])
+    ``((rows + E) * heads, head_dim)``, a right-hand operand of the matrices on ``pattern``; ``dense``
+    itself when the pattern has no dummy targets (several graphs)."""
+    extra = pattern.shape[1] - pattern.shape[0]
+    return dense if extra == 0 else torch.cat([dense, dense.new_zeros(extra, dense.shape[1])])
 
 
 def _matmul(pattern: _Pattern, values: Tensor, dense: Tensor, transposed: bool = False) -> Tensor:
@@ -283,8 +292,8 @@ class GraphBatch:
         self.n_groups = n_groups
         check_neighbors(neighbors, self.n_agents)
         self.list_width = neighbors.shape[2]
-        self.targets, self.positions = neighbor_entries(neighbors, self.n_agents)
-        self.mask = self.targets < self.rows
+        self.targets, self.positions, self.mask = neighbor_entries(neighbors, self.n_agents)
+        self.n_targets = self.rows if self.batch > 1 else self.rows + self.targets.shape[1]
         own = torch.arange(self.rows, device=neighbors.device).unsqueeze(1)
         self.columns = torch.where(self.mask, self.targets, own)
         self._patterns: dict[int, _Pattern] = {}
@@ -320,7 +329,7 @@ class GraphBatch:
     def pattern(self, heads: int) -> _Pattern:
         """CSR pattern of the attention with ``heads`` heads (built once per head count)."""
         if heads not in self._patterns:
-            self._patterns[heads] = _attention_pattern(self.targets, heads)
+            self._patterns[heads] = _attention_pattern(self.targets, heads, self.n_targets)
         return self._patterns[heads]
 
     def segments(self, across_groups: bool) -> list[Tensor]:
