@@ -106,3 +106,24 @@ def test_neighbour_indices_out_of_range_are_rejected():
 
     with pytest.raises(ValueError, match=r"agent indices in \[-1, 3\]"):
         make_graph_vec_env(WrongGraph).reset()
+
+
+@pytest.mark.parametrize(
+    "env_name, env_kwargs",
+    [
+        ("surviving_v0", dict(n_agents=20, map_size=16, n_resources=3, max_cycles=30)),
+        ("uav_mbs_v0", dict(n_uavs=10, n_users=60, max_cycles=30, observation_mode="compact")),
+        ("pursuit_v0", dict(map_size=30, max_cycles=30)),
+    ],
+)
+def test_registered_envs_list_distinct_neighbours(env_name, env_kwargs):
+    """The attention counts a repeated neighbour once; these envs never list one twice, so that rule
+    does not change what they learn."""
+    env = make_graph_vec_env(env_name, n_envs=2, seed=0, env_kwargs=env_kwargs)
+    obs = env.reset()
+    rng = np.random.default_rng(0)
+    for _ in range(40):
+        for row in obs["neighbors"]:
+            listed = row[row >= 0]
+            assert len(np.unique(listed)) == len(listed), row
+        obs, *_ = env.step(rng.integers(0, env.action_space.n, env.num_envs))
