@@ -140,7 +140,7 @@ def test_train_refuses_a_completed_run_and_resumes_from_checkpoint(surviving_run
     results = json.loads((surviving_run / "eval.json").read_text())
     assert results["resumed_from"] == "model_300_steps.zip" and results["agent_steps"] == 600
     lines = (surviving_run / "team_returns.csv").read_text().splitlines()
-    assert lines.count("r,l,t") == 1 and len(lines) == 2 + 6 + 3  # the resumed half appended
+    assert lines.count("r,l,t") == 1 and len(lines) == 2 + 6  # rewound to 300 steps, then appended
 
 
 def test_epsilon_never_picks_invalid_actions_on_ctc(tmp_path):

@@ -71,3 +71,32 @@ class TeamMonitorCallback(BaseCallback):
         if self.file is not None:
             self.file.close()
             self.file = None
+
+
+def rewind_team_returns(path: str | os.PathLike, agent_steps: int) -> int:
+    """Drop the rows of a ``team_returns.csv`` logged after ``agent_steps`` (a resumed run's
+    checkpoint), so the resumed run appends to the episodes its checkpoint has seen.
+
+    A row's agent-steps are the env steps of all episodes up to it times the agent count (as the
+    figures count them): exact when the env copies end their episodes together, otherwise a few rows
+    of the last vec-steps may stay. A missing or unreadable file is left as it is.
+
+    :return: the number of rows dropped (with a row cut short by a kill).
+    """
+    try:
+        with open(path, encoding="utf-8") as file:
+            lines = file.read().splitlines()
+        n_agents = int(json.loads(lines[0][1:])["n_agents"])
+    except (OSError, ValueError, IndexError, KeyError, TypeError):
+        return 0
+    lengths = []
+    for line in lines[2:]:
+        fields = line.split(",")
+        if len(fields) != 3 or not fields[1].isdigit():  # a row cut short by a kill ends the table
+            break
+        lengths.append(int(fields[1]))
+    kept = int(np.searchsorted(np.cumsum(lengths) * n_agents, agent_steps, side="right"))
+    if kept < len(lines) - 2:
+        with open(path, "w", encoding="utf-8") as file:
+            file.write("\n".join(lines[: 2 + kept]) + "\n")
+    return len(lines) - 2 - kept

@@ -13,6 +13,7 @@ A run folder (``<root>/<env>/<preset>/seed_<seed>/``) holds::
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import re
@@ -30,7 +31,7 @@ from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback
 from sb3_hgrn.common.evaluation import RandomGraphPolicy, evaluate_graph_policy
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
 from sb3_hgrn.common.vec_env import GraphVecEnv, make_graph_vec_env
-from sb3_hgrn.experiments.callbacks import TEAM_RETURNS_FILE, TeamMonitorCallback
+from sb3_hgrn.experiments.callbacks import TEAM_RETURNS_FILE, TeamMonitorCallback, rewind_team_returns
 from sb3_hgrn.experiments.config import ConfigError, RunConfig
 from sb3_hgrn.presets import PRESETS, make_model, merge, preset_kwargs
 
@@ -75,16 +76,49 @@ def latest_checkpoint(folder: Path) -> Path | None:
     return best
 
 
-def _same_run(folder: Path, config: RunConfig) -> bool:
-    """Whether ``folder/config.yml`` describes the same run as ``config`` (ignoring its ``extra``)."""
+RUN_ENTRIES = (CONFIG_FILE, MODEL_FILE, EVAL_FILE, TEAM_RETURNS_FILE, CHECKPOINT_DIR, TENSORBOARD_DIR)
+"""What a run writes into its folder (other files, e.g. a sweep's ``train.log``, are not the run's)."""
+_MISSING = object()
+
+
+def config_differences(stored: dict[str, Any], current: dict[str, Any], prefix: str = "") -> list[str]:
+    """Dotted keys whose values differ between two configurations (the top-level ``extra`` is
+    ignored: it records versions and the command line, not the run)."""
+    differences = []
+    for key in dict.fromkeys([*stored, *current]):
+        if not prefix and key == "extra":
+            continue
+        old, new = stored.get(key, _MISSING), current.get(key, _MISSING)
+        if isinstance(old, dict) and isinstance(new, dict):
+            differences += config_differences(old, new, f"{prefix}{key}.")
+        elif old != new:
+            differences.append(f"{prefix}{key}")
+    return differences
+
+
+def _describe_differences(stored: dict[str, Any], current: dict[str, Any], keys: list[str]) -> str:
+    """``key (stored A, now B)`` for every differing dotted key."""
+
+    def value(data: Any, key: str) -> str:
+        for part in key.split("."):
+            data = data.get(part, _MISSING)
+        return "missing" if data is _MISSING else repr(data)
+
+    return "; ".join(f"{key} (stored {value(stored, key)}, now {value(current, key)})" for key in keys)
+
+
+def _stored_config(folder: Path) -> dict[str, Any] | None:
+    """The folder's ``config.yml`` as a mapping, ``None`` if it is missing or unreadable."""
     try:
-        saved = yaml.safe_load((folder / CONFIG_FILE).read_text(encoding="utf-8"))
+        data = yaml.safe_load((folder / CONFIG_FILE).read_text(encoding="utf-8"))
     except (OSError, yaml.YAMLError):
-        return False
-    current = config.to_dict()
-    return isinstance(saved, dict) and all(
-        saved.get(key) == value for key, value in current.items() if key != "extra"
-    )
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def _has_run(folder: Path) -> bool:
+    """Whether ``folder`` holds any file a run writes."""
+    return any((folder / name).exists() for name in RUN_ENTRIES)
 
 
 def _clear_run(folder: Path) -> None:
@@ -93,6 +127,61 @@ def _clear_run(folder: Path) -> None:
         (folder / name).unlink(missing_ok=True)
     for name in (CHECKPOINT_DIR, TENSORBOARD_DIR):
         shutil.rmtree(folder / name, ignore_errors=True)
+
+
+def move_run_aside(folder: Path) -> Path | None:
+    """Move the run files of ``folder`` into ``<folder>.replaced-<UTC time>/`` beside it (other files
+    stay); returns that folder, ``None`` when there was nothing to move."""
+    if not _has_run(folder):
+        return None
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    aside = folder.with_name(f"{folder.name}.replaced-{stamp}")
+    for index in itertools.count(1):
+        if not aside.exists():
+            break
+        aside = folder.with_name(f"{folder.name}.replaced-{stamp}-{index}")
+    aside.mkdir(parents=True)
+    for name in RUN_ENTRIES:
+        if (folder / name).exists():
+            os.replace(folder / name, aside / name)
+    return aside
+
+
+def prepare_run_folder(folder: Path, config: RunConfig, overwrite: bool) -> tuple[Path | None, Path | None]:
+    """Decide how a run starts in ``folder``: ``(checkpoint to resume or None, folder the old run was
+    moved to or None)``.
+
+    With ``overwrite`` an old run is moved aside (:func:`move_run_aside`). Otherwise a complete run
+    is refused, a run of another configuration is refused naming the differing keys, a run of the
+    same configuration resumes from its latest checkpoint, and one without checkpoints (killed before
+    its first) is cleared.
+    """
+    if overwrite:
+        return None, move_run_aside(folder)
+    if read_eval(folder) is not None:
+        raise ConfigError(
+            f"{folder} already holds a completed run ({EVAL_FILE}); pass --overwrite to redo it "
+            "(the old run is moved aside)."
+        )
+    if not _has_run(folder):
+        return None, None
+    stored, current = _stored_config(folder), _plain(config.to_dict())
+    if stored is None:
+        raise ConfigError(
+            f"{folder} holds a run without a readable {CONFIG_FILE}; pass --overwrite to replace it "
+            "(the old run is moved aside)."
+        )
+    differences = config_differences(stored, current)
+    if differences:
+        raise ConfigError(
+            f"{folder} holds a run of another configuration, refusing to resume it: "
+            f"{_describe_differences(stored, current, differences)}. Pass --overwrite to replace it "
+            "(the old run is moved aside), or use another --folder."
+        )
+    checkpoint = latest_checkpoint(folder)
+    if checkpoint is None:
+        _clear_run(folder)
+    return checkpoint, None
 
 
 def _tensorboard_dir(folder: Path, verbose: int) -> str | None:
@@ -117,6 +206,27 @@ def make_env(config: RunConfig, n_envs: int, seed: int | None, **env_kwargs: Any
         raise ConfigError(f"Cannot build {config.env} with env arguments {kwargs}: {error}") from error
 
 
+def _new_model(
+    config: RunConfig, env: GraphVecEnv, verbose: int, tensorboard_log: str | None, device: str
+) -> GraphOffPolicyAlgorithm:
+    """A fresh model of ``config``; bad algorithm arguments raise :class:`ConfigError`."""
+    try:
+        return make_model(
+            config.preset,
+            env,
+            paper=config.paper,
+            seed=config.seed,
+            verbose=verbose,
+            tensorboard_log=tensorboard_log,
+            device=device,
+            **config.hyperparams,
+        )
+    except (TypeError, ValueError) as error:
+        raise ConfigError(
+            f"Cannot build preset {config.preset} with arguments {config.hyperparams}: {error}"
+        ) from error
+
+
 def train_run(
     config: RunConfig,
     folder: str | os.PathLike,
@@ -129,49 +239,32 @@ def train_run(
 ) -> dict[str, Any]:
     """Train ``config`` into ``folder``, save ``model.zip``, evaluate and write ``eval.json``.
 
-    A folder whose ``config.yml`` matches and that holds checkpoints but no ``eval.json`` (a killed
-    run) is resumed from its latest checkpoint with an empty replay buffer; a folder with a complete
-    ``eval.json`` is refused unless ``overwrite``.
+    The env and the model are built first, so bad arguments fail before the folder is touched. Then
+    :func:`prepare_run_folder` decides: a killed run of the same configuration resumes from its latest
+    checkpoint with an empty replay buffer (``team_returns.csv`` rewound to the checkpoint), a
+    complete run or one of another configuration is refused unless ``overwrite``, which moves the old
+    run aside and removes it once the new run has written its ``eval.json``.
 
     :param save_freq: save a checkpoint every this many agent-steps (``None``: no checkpoints).
     :param log_interval: team episodes between log dumps.
     :return: the contents of ``eval.json``.
     """
     folder = Path(folder)
-    if read_eval(folder) is not None and not overwrite:
-        raise ConfigError(
-            f"{folder} already holds a completed run ({EVAL_FILE}); pass --overwrite to redo it."
-        )
-    checkpoint = latest_checkpoint(folder) if _same_run(folder, config) and not overwrite else None
-    if checkpoint is None:
-        _clear_run(folder)
-    folder.mkdir(parents=True, exist_ok=True)
     start = time.time()
     env = make_env(config, config.n_envs, config.seed)
-    algorithm, _ = PRESETS[config.preset]
     tensorboard_log = _tensorboard_dir(folder, verbose)
+    model = _new_model(config, env, verbose, tensorboard_log, device)
+    checkpoint, replaced = prepare_run_folder(folder, config, overwrite)
+    if replaced is not None and verbose:
+        print(f"Moved the old run aside to {replaced} (removed once this run has finished)")
+    folder.mkdir(parents=True, exist_ok=True)
     if checkpoint is not None:
-        model = algorithm.load(
+        model = PRESETS[config.preset][0].load(
             checkpoint, env=env, device=device, tensorboard_log=tensorboard_log, verbose=verbose
         )
+        rewind_team_returns(folder / TEAM_RETURNS_FILE, model.num_timesteps)
         if verbose:
             print(f"Resuming from {checkpoint} ({model.num_timesteps} agent-steps done)")
-    else:
-        try:
-            model = make_model(
-                config.preset,
-                env,
-                paper=config.paper,
-                seed=config.seed,
-                verbose=verbose,
-                tensorboard_log=tensorboard_log,
-                device=device,
-                **config.hyperparams,
-            )
-        except (TypeError, ValueError) as error:
-            raise ConfigError(
-                f"Cannot build preset {config.preset} with arguments {config.hyperparams}: {error}"
-            ) from error
     config.extra = _run_figures(config, env, model)
     (folder / CONFIG_FILE).write_text(yaml.safe_dump(config.to_dict(), sort_keys=False), encoding="utf-8")
 
@@ -221,6 +314,8 @@ def train_run(
         completed=True,
     )
     write_json(folder / EVAL_FILE, results)
+    if replaced is not None:
+        shutil.rmtree(replaced, ignore_errors=True)
     return results
 
 
