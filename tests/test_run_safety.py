@@ -1,13 +1,27 @@
-"""Run folders never lose work: validation before any change, refused resumes, moved-aside runs."""
+"""Run folders never lose work: validation before any change, refused resumes, moved-aside runs,
+atomic writes, damaged checkpoints skipped, and a real ``sb3-hgrn train`` killed with SIGKILL."""
 
+import io
+import json
+import os
 import shutil
+import signal
+import subprocess
+import sys
+import time
+import zipfile
 from pathlib import Path
 
 import pytest
+from stable_baselines3.common.base_class import BaseAlgorithm
 
+from sb3_hgrn import SoftHGRN
 from sb3_hgrn.cli import main
+from sb3_hgrn.common.files import DamagedModelFileError, save_model_atomically
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
 from sb3_hgrn.experiments.callbacks import rewind_team_returns
+
+REPO = Path(__file__).resolve().parents[1]
 
 TOY = ["--budget", "ci", "--verbose", "0", "--threads", "1"]
 SMALL = ["--param", "batch_size=4", "policy_kwargs.hidden_dim=16", "--env-param", "n_agents=5"]
@@ -106,3 +120,130 @@ def test_rewind_team_returns_drops_rows_after_the_checkpoint(tmp_path):
     assert rewind_team_returns(path, 200) == 2
     assert path.read_text() == header + "1.0,20,0.1\n2.0,20,0.2\n"
     assert rewind_team_returns(path, 1000) == 0 and rewind_team_returns(tmp_path / "missing.csv", 0) == 0
+
+
+def cut_short(path: Path) -> None:
+    """Keep the first half of a file, as a process killed while writing it would."""
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+
+
+def as_killed(folder: Path) -> None:
+    """Make ``folder`` look like a run killed after its last checkpoint."""
+    for name in ("eval.json", "model.zip"):
+        (folder / name).unlink()
+
+
+def test_resume_skips_a_damaged_checkpoint(root, capsys):
+    folder = run_of(root)
+    as_killed(folder)
+    cut_short(folder / "checkpoints" / "model_200_steps.zip")
+    with pytest.warns(UserWarning, match="Skipping damaged model file .*model_200_steps.zip"):
+        assert main(train_args(root)) == 0
+    results = json.loads((folder / "eval.json").read_text())
+    assert results["resumed_from"] == "model_100_steps.zip" and results["agent_steps"] == 200
+
+
+def test_evaluate_skips_a_damaged_checkpoint_and_names_a_damaged_file(root, capsys):
+    folder = run_of(root)
+    as_killed(folder)
+    newest = folder / "checkpoints" / "model_200_steps.zip"
+    cut_short(newest)
+    with pytest.warns(UserWarning, match="model_200_steps.zip"):
+        assert main(["evaluate", str(folder), "--episodes", "1", "--threads", "1"]) == 0
+    assert "over 1 episodes" in capsys.readouterr().out
+    assert f"damaged model file {newest}" in fails_with(["evaluate", str(newest)], capsys)
+
+
+def test_load_of_a_damaged_zip_names_the_file(finished_root, tmp_path):
+    model = run_of(finished_root) / "model.zip"
+    truncated, garbage, bad_data = tmp_path / "truncated.zip", tmp_path / "garbage.zip", tmp_path / "data.zip"
+    truncated.write_bytes(model.read_bytes()[:1000])
+    garbage.write_text("not a zip")
+    with zipfile.ZipFile(model) as source, zipfile.ZipFile(bad_data, "w") as target:
+        for name in source.namelist():
+            target.writestr(name, b"{not json" if name == "data" else source.read(name))
+    for path in (truncated, garbage, bad_data):
+        with pytest.raises(DamagedModelFileError, match=f"damaged model file {path}"):
+            SoftHGRN.load(path)
+    with pytest.raises(ValueError, match="damaged model file .*truncated.zip"):
+        SoftHGRN.load(tmp_path / "truncated")  # SB3 adds the .zip
+
+
+class Interrupted(Exception):
+    """Stands in for a kill while a file is written."""
+
+
+def half_save(model, path) -> None:
+    """Write half of ``model``'s zip to ``path`` (a file name or a file), then fail."""
+    buffer = io.BytesIO()
+    BaseAlgorithm.save(model, buffer)
+    half = buffer.getvalue()[: len(buffer.getvalue()) // 2]
+    if hasattr(path, "write"):
+        path.write(half)
+    else:
+        Path(path).write_bytes(half)
+    raise Interrupted
+
+
+class CutShort:
+    """A model whose ``save`` writes half of the real zip, then fails."""
+
+    def __init__(self, model):
+        self.model = model
+
+    def save(self, path) -> None:
+        half_save(self.model, path)
+
+
+def test_a_save_cut_short_leaves_the_old_file_and_no_partial_one(finished_root, tmp_path):
+    model = SoftHGRN.load(run_of(finished_root) / "model.zip")
+    target = tmp_path / "model.zip"
+    save_model_atomically(model, target)
+    before = target.read_bytes()
+    with pytest.raises(Interrupted):
+        save_model_atomically(CutShort(model), target)
+    assert target.read_bytes() == before and os.listdir(tmp_path) == ["model.zip"]
+
+
+def test_a_kill_while_saving_a_checkpoint_leaves_the_earlier_ones_whole(root, monkeypatch, capsys):
+    folder = run_of(root)
+    saves = []
+
+    def second_save_cut_short(self, path, *args, **kwargs):
+        saves.append(path)
+        if len(saves) == 2:
+            half_save(self, path)
+        BaseAlgorithm.save(self, path, *args, **kwargs)
+
+    monkeypatch.setattr(SoftHGRN, "save", second_save_cut_short)
+    with pytest.raises(Interrupted):
+        main([*train_args(root), "--overwrite"])
+    assert sorted(os.listdir(folder / "checkpoints")) == ["model_100_steps.zip"]
+    monkeypatch.undo()
+    assert main(train_args(root)) == 0
+    assert json.loads((folder / "eval.json").read_text())["resumed_from"] == "model_100_steps.zip"
+
+
+def test_sigkill_during_training_then_resume(tmp_path):
+    """A real ``sb3-hgrn train`` killed with SIGKILL once it has checkpoints resumes from the newest."""
+    folder = run_of(tmp_path)
+    args = train_args(tmp_path, 1500)
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    process = subprocess.Popen([sys.executable, "-m", "sb3_hgrn", *args], env=env)
+    try:
+        deadline = time.time() + 60
+        while not (folder / "checkpoints" / "model_300_steps.zip").exists():
+            assert process.poll() is None and time.time() < deadline, "the run ended before its kill"
+            time.sleep(0.02)
+    finally:
+        os.kill(process.pid, signal.SIGKILL)
+        process.wait()
+    assert not (folder / "eval.json").exists()
+    rows = (folder / "team_returns.csv").read_text().splitlines()[2:]
+    assert main(args) == 0
+    results = json.loads((folder / "eval.json").read_text())
+    assert results["agent_steps"] == 1500 and results["resumed_from"].startswith("model_")
+    steps = int(results["resumed_from"].split("_")[1])
+    assert steps >= 300 and len(rows) >= steps // 100
+    rows = (folder / "team_returns.csv").read_text().splitlines()[2:]
+    assert len(rows) == 15 and all(len(row.split(",")) == 3 for row in rows)  # one row per episode

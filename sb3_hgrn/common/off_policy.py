@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from collections import deque
@@ -22,6 +23,7 @@ from stable_baselines3.common.utils import (
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_hgrn.common.buffers import GraphReplayBuffer
+from sb3_hgrn.common.files import check_model_file
 from sb3_hgrn.common.policies import GraphPolicy, check_graph_spaces
 from sb3_hgrn.common.temperature import TemperatureController, group_means, target_entropy
 from sb3_hgrn.common.vec_env import make_graph_vec_env
@@ -247,6 +249,26 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
     @staticmethod
     def _wrap_env(env: GymEnv, verbose: int = 0, monitor_wrapper: bool = True) -> VecEnv:
         return check_graph_env(env)
+
+    @classmethod
+    def load(
+        cls,
+        path: str | os.PathLike | Any,
+        env: GymEnv | None = None,
+        device: th.device | str = "auto",
+        custom_objects: dict[str, Any] | None = None,
+        print_system_info: bool = False,
+        force_reset: bool = True,
+        **kwargs: Any,
+    ):
+        """SB3's ``load``; a damaged zip (cut short, not a zip, unreadable contents) raises
+        :class:`~sb3_hgrn.common.files.DamagedModelFileError`, a ``ValueError`` naming the file.
+
+        Like any SB3 zip, a model file can run code when loaded: load only files from a trusted source.
+        """
+        if isinstance(path, str | os.PathLike):
+            check_model_file(path)
+        return super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return ["policy", *self._optimizer_names(), "temperature.optimizer"], []

@@ -1,4 +1,4 @@
-"""Callbacks of the command-line runs: a Monitor-style CSV of team returns."""
+"""Callbacks of the command-line runs: a Monitor-style CSV of team returns, atomic checkpoints."""
 
 from __future__ import annotations
 
@@ -8,7 +8,9 @@ import time
 from typing import IO, Any
 
 import numpy as np
-from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback
+
+from sb3_hgrn.common.files import save_model_atomically, write_text_atomically
 
 TEAM_RETURNS_FILE = "team_returns.csv"
 
@@ -97,6 +99,27 @@ def rewind_team_returns(path: str | os.PathLike, agent_steps: int) -> int:
         lengths.append(int(fields[1]))
     kept = int(np.searchsorted(np.cumsum(lengths) * n_agents, agent_steps, side="right"))
     if kept < len(lines) - 2:
-        with open(path, "w", encoding="utf-8") as file:
-            file.write("\n".join(lines[: 2 + kept]) + "\n")
+        write_text_atomically(path, "\n".join(lines[: 2 + kept]) + "\n")
     return len(lines) - 2 - kept
+
+
+class AtomicCheckpointCallback(CheckpointCallback):
+    """SB3's ``CheckpointCallback`` (``<save_path>/<name_prefix>_<agent-steps>_steps.zip`` every
+    ``save_freq`` calls) whose zips are written to a temporary file and renamed, so a process killed
+    while saving leaves the previous checkpoints whole and no partial zip.
+
+    :param save_freq: save a checkpoint every ``save_freq`` calls (vec-steps).
+    :param save_path: folder of the checkpoints.
+    :param name_prefix: start of the file names.
+    """
+
+    def __init__(self, save_freq: int, save_path: str, name_prefix: str = "rl_model", verbose: int = 0):
+        super().__init__(save_freq, save_path, name_prefix=name_prefix, verbose=verbose)
+
+    def _on_step(self) -> bool:
+        if self.n_calls % self.save_freq == 0:
+            path = self._checkpoint_path(extension="zip")
+            save_model_atomically(self.model, path)
+            if self.verbose >= 2:
+                print(f"Saving model checkpoint to {path}")
+        return True

@@ -35,6 +35,7 @@ from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from sb3_hgrn.common.files import atomic_write
 from sb3_hgrn.experiments.callbacks import TEAM_RETURNS_FILE
 from sb3_hgrn.experiments.config import (
     ConfigError,
@@ -349,9 +350,10 @@ def _seed_list(info: dict[str, Any]) -> str:
 def save_figure(figure: Figure, rows: list[dict[str, Any]], info: dict[str, Any], out: Path) -> None:
     """Write the PNG, its plotted numbers (``.csv``) and what produced them (``.json``)."""
     out.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(out, dpi=110, bbox_inches="tight")
+    with atomic_write(out, "wb") as file:
+        figure.savefig(file, format="png", dpi=110, bbox_inches="tight")
     fields = list(dict.fromkeys(key for row in rows for key in row))
-    with open(out.with_suffix(".csv"), "w", newline="", encoding="utf-8") as file:
+    with atomic_write(out.with_suffix(".csv")) as file:
         writer = csv.DictWriter(file, fieldnames=fields)
         writer.writeheader()
         for row in rows:

@@ -20,18 +20,30 @@ import re
 import shutil
 import sys
 import time
+import warnings
 import zipfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import yaml
-from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback
+from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_hgrn.common.evaluation import RandomGraphPolicy, evaluate_graph_policy
+from sb3_hgrn.common.files import (
+    DamagedModelFileError,
+    check_model_file,
+    save_model_atomically,
+    write_text_atomically,
+)
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
 from sb3_hgrn.common.vec_env import GraphVecEnv, make_graph_vec_env
-from sb3_hgrn.experiments.callbacks import TEAM_RETURNS_FILE, TeamMonitorCallback, rewind_team_returns
+from sb3_hgrn.experiments.callbacks import (
+    TEAM_RETURNS_FILE,
+    AtomicCheckpointCallback,
+    TeamMonitorCallback,
+    rewind_team_returns,
+)
 from sb3_hgrn.experiments.config import ConfigError, RunConfig
 from sb3_hgrn.presets import PRESETS, make_model, merge, preset_kwargs
 
@@ -61,19 +73,36 @@ def read_eval(folder: str | os.PathLike) -> dict[str, Any] | None:
 
 def write_json(path: Path, data: dict[str, Any]) -> None:
     """Write ``data`` atomically (a killed process never leaves half a file)."""
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
-    os.replace(tmp, path)
+    write_text_atomically(path, json.dumps(data, indent=2) + "\n")
+
+
+def _checkpoints(folder: Path) -> list[Path]:
+    """The checkpoints in ``folder/checkpoints``, most agent-steps first."""
+    steps = {}
+    for path in (folder / CHECKPOINT_DIR).glob("*_steps.zip"):
+        match = re.search(r"_(\d+)_steps\.zip$", path.name)
+        if match:
+            steps[path] = int(match.group(1))
+    return sorted(steps, key=steps.__getitem__, reverse=True)
+
+
+def _first_good(paths: list[Path]) -> Path | None:
+    """The first of ``paths`` that is a whole model zip; every damaged one before it is skipped with
+    a warning."""
+    for path in paths:
+        try:
+            check_model_file(path)
+        except DamagedModelFileError as error:
+            warnings.warn(f"Skipping {error}", stacklevel=3)
+            continue
+        return path
+    return None
 
 
 def latest_checkpoint(folder: Path) -> Path | None:
-    """The checkpoint with the most agent-steps in ``folder/checkpoints``, if any."""
-    best, best_steps = None, -1
-    for path in (folder / CHECKPOINT_DIR).glob("*_steps.zip"):
-        match = re.search(r"_(\d+)_steps\.zip$", path.name)
-        if match and int(match.group(1)) > best_steps:
-            best, best_steps = path, int(match.group(1))
-    return best
+    """The undamaged checkpoint with the most agent-steps in ``folder/checkpoints``, if any (damaged
+    ones are skipped with a warning)."""
+    return _first_good(_checkpoints(folder))
 
 
 RUN_ENTRIES = (CONFIG_FILE, MODEL_FILE, EVAL_FILE, TEAM_RETURNS_FILE, CHECKPOINT_DIR, TENSORBOARD_DIR)
@@ -266,14 +295,14 @@ def train_run(
         if verbose:
             print(f"Resuming from {checkpoint} ({model.num_timesteps} agent-steps done)")
     config.extra = _run_figures(config, env, model)
-    (folder / CONFIG_FILE).write_text(yaml.safe_dump(config.to_dict(), sort_keys=False), encoding="utf-8")
+    write_text_atomically(folder / CONFIG_FILE, yaml.safe_dump(config.to_dict(), sort_keys=False))
 
     callbacks: list[BaseCallback] = [
         TeamMonitorCallback(str(folder / TEAM_RETURNS_FILE), env_id=config.env, append=checkpoint is not None)
     ]
     if save_freq:
         callbacks.append(
-            CheckpointCallback(
+            AtomicCheckpointCallback(
                 max(1, save_freq // env.num_envs), str(folder / CHECKPOINT_DIR), name_prefix="model"
             )
         )
@@ -285,7 +314,7 @@ def train_run(
         progress_bar=progress_bar,
         reset_num_timesteps=checkpoint is None,
     )
-    model.save(folder / MODEL_FILE)
+    save_model_atomically(model, folder / MODEL_FILE)
     train_time = time.time() - start
 
     eval_start = time.time()
@@ -483,6 +512,7 @@ def algorithm_of_zip(path: Path) -> type[GraphOffPolicyAlgorithm]:
     """``SoftHGRN`` or ``SACHGRN``, from the policy class recorded in a saved model."""
     import sb3_hgrn
 
+    check_model_file(path)
     with zipfile.ZipFile(path) as archive:
         module = json.loads(archive.read("data"))["policy_class"].get("__module__", "")
     for name in ("sac_hgrn", "soft_hgrn"):
@@ -498,9 +528,10 @@ def locate_run(path: str | os.PathLike, env: str | None = None) -> tuple[Path, R
     """
     path = Path(path)
     if path.is_dir():
-        model_path = path / MODEL_FILE if (path / MODEL_FILE).exists() else latest_checkpoint(path)
+        final = [path / MODEL_FILE] if (path / MODEL_FILE).exists() else []
+        model_path = _first_good([*final, *_checkpoints(path)])
         if model_path is None:
-            raise ConfigError(f"{path} holds neither {MODEL_FILE} nor a checkpoint.")
+            raise ConfigError(f"{path} holds neither a whole {MODEL_FILE} nor a whole checkpoint.")
         candidates = [path]
     else:
         if not path.exists() and Path(f"{path}.zip").exists():
@@ -534,6 +565,10 @@ def load_run(
 ) -> tuple[GraphOffPolicyAlgorithm, GraphVecEnv, RunConfig]:
     """Load a saved run's model onto a fresh copy of its env (``env_kwargs`` over the run's)."""
     model_path, config = locate_run(path, env)
+    try:
+        check_model_file(model_path)
+    except DamagedModelFileError as error:
+        raise ConfigError(str(error)) from error
     algorithm = PRESETS[config.preset][0] if config.preset in PRESETS else algorithm_of_zip(model_path)
     vec_env = make_env(
         config,

@@ -21,6 +21,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from sb3_hgrn.common.files import atomic_write, write_text_atomically
 from sb3_hgrn.experiments.config import (
     RANDOM_POLICY,
     ConfigError,
@@ -316,12 +317,12 @@ def write_tables(
     """Write ``table1.csv`` and ``table1.md`` into ``results`` from its run folders."""
     results.mkdir(parents=True, exist_ok=True)
     rows = collect_rows(results / "table1", envs, [*presets, RANDOM_POLICY], seeds)
-    with open(results / "table1.csv", "w", newline="", encoding="utf-8") as file:
+    with atomic_write(results / "table1.csv") as file:
         writer = csv.DictWriter(file, fieldnames=list(rows[0]))
         writer.writeheader()
         for row in rows:
             writer.writerow({key: "" if value is None else _round(value) for key, value in row.items()})
-    (results / "table1.md").write_text(markdown(rows, budget, envs, presets, seeds), encoding="utf-8")
+    write_text_atomically(results / "table1.md", markdown(rows, budget, envs, presets, seeds))
     return rows
 
 

@@ -1,0 +1,85 @@
+"""Crash-safe files: atomic writes, and checks of saved model zips before they are loaded.
+
+A file written with :func:`atomic_write` goes to a temporary file in the same folder, is flushed to
+disk and then renamed over the target (``os.replace``), so a process killed at any moment leaves
+either the old file or the new one, never half of one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import zipfile
+import zlib
+from collections.abc import Iterator
+from pathlib import Path
+from typing import IO, Any
+
+MODEL_MEMBERS = ("data", "policy.pth")
+"""Members every SB3 model zip holds."""
+
+
+class DamagedModelFileError(ValueError):
+    """A model zip that cannot be loaded: cut short, not a zip, or with unreadable contents."""
+
+
+@contextlib.contextmanager
+def atomic_write(path: str | os.PathLike, mode: str = "w") -> Iterator[IO[Any]]:
+    """Open a temporary file beside ``path`` for writing; on success it replaces ``path``.
+
+    :param mode: ``"w"`` (text, UTF-8, written as given: no newline translation, as the ``csv``
+        module expects) or ``"wb"`` (binary).
+    """
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    text = {} if "b" in mode else {"encoding": "utf-8", "newline": ""}
+    try:
+        with open(tmp, mode, **text) as file:
+            yield file
+            file.flush()
+            os.fsync(file.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def write_text_atomically(path: str | os.PathLike, text: str) -> None:
+    """Write ``text`` to ``path`` with :func:`atomic_write`."""
+    with atomic_write(path) as file:
+        file.write(text)
+
+
+def save_model_atomically(model: Any, path: str | os.PathLike) -> None:
+    """``model.save(path)`` (an SB3 model) through :func:`atomic_write`."""
+    with atomic_write(path, "wb") as file:
+        model.save(file)
+
+
+def model_file_path(path: str | os.PathLike) -> Path:
+    """The file SB3's ``load`` reads for ``path``: ``path`` itself, else ``<path>.zip``."""
+    path = Path(path)
+    return path if path.exists() else Path(f"{path}.zip")
+
+
+def check_model_file(path: str | os.PathLike) -> None:
+    """Raise :class:`DamagedModelFileError` naming ``path`` unless it is a whole SB3 model zip (a
+    readable zip with intact members, among them ``data`` as JSON and ``policy.pth``).
+
+    A missing file is left to the loader (its own ``FileNotFoundError``).
+    """
+    path = model_file_path(path)
+    if not path.is_file():
+        return
+    try:
+        with zipfile.ZipFile(path) as archive:
+            broken = archive.testzip()
+            missing = [name for name in MODEL_MEMBERS if name not in archive.namelist()]
+            if broken is None and not missing:
+                json.loads(archive.read("data"))
+    except (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError) as error:
+        raise DamagedModelFileError(f"damaged model file {path}: {error}") from error
+    if broken is not None:
+        raise DamagedModelFileError(f"damaged model file {path}: member {broken!r} fails its checksum")
+    if missing:
+        raise DamagedModelFileError(f"damaged model file {path}: no {', '.join(missing)} in the zip")
