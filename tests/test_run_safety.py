@@ -1,5 +1,6 @@
 """Run folders never lose work: validation before any change, refused resumes, moved-aside runs,
-atomic writes, damaged checkpoints skipped, and a real ``sb3-hgrn train`` killed with SIGKILL."""
+atomic writes, damaged checkpoints skipped, a real ``sb3-hgrn train`` killed with SIGKILL, and one
+process per run folder."""
 
 import io
 import json
@@ -20,6 +21,8 @@ from sb3_hgrn.cli import main
 from sb3_hgrn.common.files import DamagedModelFileError, save_model_atomically
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
 from sb3_hgrn.experiments.callbacks import rewind_team_returns
+from sb3_hgrn.experiments.lock import PID_FILE, RunLock
+from sb3_hgrn.experiments.table1 import LOG_FILE, Job, run_jobs
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -240,10 +243,58 @@ def test_sigkill_during_training_then_resume(tmp_path):
         process.wait()
     assert not (folder / "eval.json").exists()
     rows = (folder / "team_returns.csv").read_text().splitlines()[2:]
-    assert main(args) == 0
+    with pytest.warns(UserWarning, match=f"Taking over the lock .* from process {process.pid}"):
+        assert main(args) == 0
     results = json.loads((folder / "eval.json").read_text())
     assert results["agent_steps"] == 1500 and results["resumed_from"].startswith("model_")
     steps = int(results["resumed_from"].split("_")[1])
     assert steps >= 300 and len(rows) >= steps // 100
     rows = (folder / "team_returns.csv").read_text().splitlines()[2:]
     assert len(rows) == 15 and all(len(row.split(",")) == 3 for row in rows)  # one row per episode
+
+
+HOLD = """
+import sys, time
+from sb3_hgrn.experiments.lock import RunLock
+with RunLock(sys.argv[1]):
+    print("locked", flush=True)
+    time.sleep(120)
+"""
+
+
+@pytest.fixture
+def holder(tmp_path):
+    """A second process holding the lock of the run folder under ``tmp_path``."""
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    command = [sys.executable, "-c", HOLD, str(run_of(tmp_path))]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True, env=env)
+    assert process.stdout.readline() == "locked\n"
+    yield process
+    process.kill()
+    process.wait()
+
+
+def test_a_second_process_on_a_locked_folder_is_refused_naming_the_pid(tmp_path, holder, capsys):
+    error = fails_with(train_args(tmp_path), capsys)
+    assert f"is in use by process {holder.pid}" in error
+    assert sorted(os.listdir(run_of(tmp_path))) == [".lock", PID_FILE]  # nothing of a run written
+
+
+def test_a_stale_lock_of_a_killed_process_is_taken_over(tmp_path, holder):
+    holder.send_signal(signal.SIGKILL)
+    holder.wait()
+    assert (run_of(tmp_path) / PID_FILE).read_text() == f"{holder.pid}\n"  # left behind by the kill
+    with pytest.warns(UserWarning, match=f"from process {holder.pid}, which ended without releasing it"):
+        assert main(train_args(tmp_path)) == 0
+    assert (run_of(tmp_path) / "eval.json").exists() and not (run_of(tmp_path) / PID_FILE).exists()
+
+
+def test_sweeps_skip_a_locked_run_and_keep_its_log(tmp_path):
+    job = Job("surviving_v0", "soft_hgrn", 0, run_of(tmp_path))
+    job.folder.mkdir(parents=True)
+    (job.folder / LOG_FILE).write_text("the running run's log\n")
+    messages = []
+    with RunLock(job.folder):
+        failed = run_jobs([job], lambda job: [sys.executable, "-c", "pass"], log=messages.append)
+    assert failed == [job] and f"in use by process {os.getpid()}" in messages[0]
+    assert (job.folder / LOG_FILE).read_text() == "the running run's log\n"

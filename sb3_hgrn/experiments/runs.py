@@ -45,6 +45,7 @@ from sb3_hgrn.experiments.callbacks import (
     rewind_team_returns,
 )
 from sb3_hgrn.experiments.config import ConfigError, RunConfig
+from sb3_hgrn.experiments.lock import RunLock
 from sb3_hgrn.presets import PRESETS, make_model, merge, preset_kwargs
 
 CONFIG_FILE = "config.yml"
@@ -283,68 +284,77 @@ def train_run(
     env = make_env(config, config.n_envs, config.seed)
     tensorboard_log = _tensorboard_dir(folder, verbose)
     model = _new_model(config, env, verbose, tensorboard_log, device)
-    checkpoint, replaced = prepare_run_folder(folder, config, overwrite)
-    if replaced is not None and verbose:
-        print(f"Moved the old run aside to {replaced} (removed once this run has finished)")
-    folder.mkdir(parents=True, exist_ok=True)
-    if checkpoint is not None:
-        model = PRESETS[config.preset][0].load(
-            checkpoint, env=env, device=device, tensorboard_log=tensorboard_log, verbose=verbose
-        )
-        rewind_team_returns(folder / TEAM_RETURNS_FILE, model.num_timesteps)
-        if verbose:
-            print(f"Resuming from {checkpoint} ({model.num_timesteps} agent-steps done)")
-    config.extra = _run_figures(config, env, model)
-    write_text_atomically(folder / CONFIG_FILE, yaml.safe_dump(config.to_dict(), sort_keys=False))
-
-    callbacks: list[BaseCallback] = [
-        TeamMonitorCallback(str(folder / TEAM_RETURNS_FILE), env_id=config.env, append=checkpoint is not None)
-    ]
-    if save_freq:
-        callbacks.append(
-            AtomicCheckpointCallback(
-                max(1, save_freq // env.num_envs), str(folder / CHECKPOINT_DIR), name_prefix="model"
+    with RunLock(folder):
+        checkpoint, replaced = prepare_run_folder(folder, config, overwrite)
+        if replaced is not None and verbose:
+            print(f"Moved the old run aside to {replaced} (removed once this run has finished)")
+        if checkpoint is not None:
+            model = PRESETS[config.preset][0].load(
+                checkpoint, env=env, device=device, tensorboard_log=tensorboard_log, verbose=verbose
             )
-        )
-    remaining = max(0, config.total_timesteps - model.num_timesteps)
-    model.learn(
-        remaining,
-        callback=callbacks,
-        log_interval=log_interval,
-        progress_bar=progress_bar,
-        reset_num_timesteps=checkpoint is None,
-    )
-    save_model_atomically(model, folder / MODEL_FILE)
-    train_time = time.time() - start
+            rewind_team_returns(folder / TEAM_RETURNS_FILE, model.num_timesteps)
+            if verbose:
+                print(f"Resuming from {checkpoint} ({model.num_timesteps} agent-steps done)")
+        config.extra = _run_figures(config, env, model)
+        write_text_atomically(folder / CONFIG_FILE, yaml.safe_dump(config.to_dict(), sort_keys=False))
 
-    eval_start = time.time()
+        callbacks: list[BaseCallback] = [
+            TeamMonitorCallback(
+                str(folder / TEAM_RETURNS_FILE), env_id=config.env, append=checkpoint is not None
+            )
+        ]
+        if save_freq:
+            callbacks.append(
+                AtomicCheckpointCallback(
+                    max(1, save_freq // env.num_envs), str(folder / CHECKPOINT_DIR), name_prefix="model"
+                )
+            )
+        remaining = max(0, config.total_timesteps - model.num_timesteps)
+        model.learn(
+            remaining,
+            callback=callbacks,
+            log_interval=log_interval,
+            progress_bar=progress_bar,
+            reset_num_timesteps=checkpoint is None,
+        )
+        env.close()
+        save_model_atomically(model, folder / MODEL_FILE)
+        train_time = time.time() - start
+        results = _final_evaluation(config, model)
+        n_agents = int(config.extra["n_agents"])
+        results.update(
+            env=config.env,
+            preset=config.preset,
+            budget=config.budget,
+            seed=config.seed,
+            agent_steps=int(model.num_timesteps),
+            env_steps=int(model.num_timesteps // n_agents),
+            n_agents=n_agents,
+            train_time_s=round(train_time, 2),
+            eval_time_s=round(time.time() - start - train_time, 2),
+            wall_time_s=round(time.time() - start, 2),
+            resumed_from=None if checkpoint is None else checkpoint.name,
+            completed=True,
+        )
+        write_json(folder / EVAL_FILE, results)
+        if replaced is not None:
+            shutil.rmtree(replaced, ignore_errors=True)
+    return results
+
+
+def _final_evaluation(config: RunConfig, model: GraphOffPolicyAlgorithm) -> dict[str, Any]:
+    """The trained model's evaluation on fresh env copies (seed ``seed + 1000``): the plain policy,
+    then each of the budget's ``eval_epsilons`` under ``epsilon_evaluations``."""
     eval_env = make_env(config, config.eval_n_envs, config.seed + EVAL_SEED_OFFSET)
-    results = evaluate_model(model, eval_env, config.eval_episodes, deterministic=False)
-    for epsilon in config.eval_epsilons:
-        eval_env.seed(config.seed + EVAL_SEED_OFFSET)
-        eps_policy = EpsilonRandomPolicy(model, epsilon, seed=config.seed)
-        eps_results = evaluate_model(eps_policy, eval_env, config.eval_episodes, deterministic=False)
-        results.setdefault("epsilon_evaluations", {})[f"{epsilon:g}"] = eps_results
-    eval_env.close()
-    env.close()
-    n_agents = int(config.extra["n_agents"])
-    results.update(
-        env=config.env,
-        preset=config.preset,
-        budget=config.budget,
-        seed=config.seed,
-        agent_steps=int(model.num_timesteps),
-        env_steps=int(model.num_timesteps // n_agents),
-        n_agents=n_agents,
-        train_time_s=round(train_time, 2),
-        eval_time_s=round(time.time() - eval_start, 2),
-        wall_time_s=round(time.time() - start, 2),
-        resumed_from=None if checkpoint is None else checkpoint.name,
-        completed=True,
-    )
-    write_json(folder / EVAL_FILE, results)
-    if replaced is not None:
-        shutil.rmtree(replaced, ignore_errors=True)
+    try:
+        results = evaluate_model(model, eval_env, config.eval_episodes, deterministic=False)
+        for epsilon in config.eval_epsilons:
+            eval_env.seed(config.seed + EVAL_SEED_OFFSET)
+            eps_policy = EpsilonRandomPolicy(model, epsilon, seed=config.seed)
+            eps_results = evaluate_model(eps_policy, eval_env, config.eval_episodes, deterministic=False)
+            results.setdefault("epsilon_evaluations", {})[f"{epsilon:g}"] = eps_results
+    finally:
+        eval_env.close()
     return results
 
 
@@ -356,26 +366,28 @@ def evaluate_random_policy(config: RunConfig, folder: str | os.PathLike) -> dict
     :return: the contents of ``eval.json``.
     """
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
     start = time.time()
     env = make_env(config, config.eval_n_envs, config.seed + EVAL_SEED_OFFSET)
-    try:
-        results = evaluate_model(RandomGraphPolicy(env, seed=config.seed), env, config.eval_episodes, False)
-        n_agents = int(env.n_agents)
-    finally:
-        env.close()
-    results.update(
-        env=config.env,
-        preset=config.preset,
-        budget=config.budget,
-        seed=config.seed,
-        agent_steps=0,
-        env_steps=0,
-        n_agents=n_agents,
-        wall_time_s=round(time.time() - start, 2),
-        completed=True,
-    )
-    write_json(folder / EVAL_FILE, results)
+    with RunLock(folder):
+        try:
+            results = evaluate_model(
+                RandomGraphPolicy(env, seed=config.seed), env, config.eval_episodes, False
+            )
+            n_agents = int(env.n_agents)
+        finally:
+            env.close()
+        results.update(
+            env=config.env,
+            preset=config.preset,
+            budget=config.budget,
+            seed=config.seed,
+            agent_steps=0,
+            env_steps=0,
+            n_agents=n_agents,
+            wall_time_s=round(time.time() - start, 2),
+            completed=True,
+        )
+        write_json(folder / EVAL_FILE, results)
     return results
 
 

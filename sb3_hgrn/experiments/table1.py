@@ -31,6 +31,7 @@ from sb3_hgrn.experiments.config import (
     load_hyperparams,
     random_policy_config,
 )
+from sb3_hgrn.experiments.lock import lock_holder
 from sb3_hgrn.experiments.paper import (
     ENV_TITLES,
     PAPER_EVAL_EPISODES,
@@ -203,7 +204,8 @@ def run_jobs(
 
     Each process writes its output to its folder's ``train.log``. A job succeeds when its process
     exits with status 0 and leaves a complete ``eval.json``; a failed one is logged with the end of
-    its log and the others go on.
+    its log and the others go on. A job whose folder another process has locked (a run going on
+    there, see :mod:`sb3_hgrn.experiments.lock`) is not started and counts as failed.
 
     :param threads: cap of the children's OpenMP / MKL threads (``None``: left as they are).
     :param on_finished: called after every finished job, and when interrupted (e.g. to rewrite tables).
@@ -217,6 +219,11 @@ def run_jobs(
         while todo or running:
             while todo and len(running) < jobs:
                 job = todo.pop(0)
+                holder = lock_holder(job.folder)
+                if holder is not None:  # its train.log belongs to the run going on there
+                    failed.append(job)
+                    log(f"{job.label()}: SKIPPED, {job.folder} is in use by {holder}")
+                    continue
                 job.folder.mkdir(parents=True, exist_ok=True)
                 log_file = open(job.folder / LOG_FILE, "w", encoding="utf-8")  # noqa: SIM115
                 process = subprocess.Popen(
