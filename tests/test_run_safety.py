@@ -1,6 +1,6 @@
 """Run folders never lose work: validation before any change, refused resumes, moved-aside runs,
 atomic writes, damaged checkpoints skipped, a real ``sb3-hgrn train`` killed with SIGKILL, and one
-process per run folder."""
+process per run folder; algorithm arguments checked at construction."""
 
 import io
 import json
@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 from stable_baselines3.common.base_class import BaseAlgorithm
 
-from sb3_hgrn import SoftHGRN
+from sb3_hgrn import SACHGRN, SoftHGRN, make_graph_vec_env
 from sb3_hgrn.cli import main
 from sb3_hgrn.common.files import DamagedModelFileError, save_model_atomically
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
@@ -298,3 +298,58 @@ def test_sweeps_skip_a_locked_run_and_keep_its_log(tmp_path):
         failed = run_jobs([job], lambda job: [sys.executable, "-c", "pass"], log=messages.append)
     assert failed == [job] and f"in use by process {os.getpid()}" in messages[0]
     assert (job.folder / LOG_FILE).read_text() == "the running run's log\n"
+
+
+@pytest.fixture(scope="module")
+def small_env():
+    env = make_graph_vec_env("surviving_v0", seed=0, env_kwargs={"n_agents": 5, "map_size": 10})
+    yield env
+    env.close()
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"train_freq": 0}, "train_freq must be an integer >= 1"),
+        ({"train_freq": (0, "episode")}, "train_freq must be an integer >= 1"),
+        ({"batch_size": "abc"}, "batch_size must be a positive integer"),
+        ({"batch_size": -3}, "batch_size must be a positive integer"),
+        ({"batch_size": 2.5}, "batch_size must be a positive integer"),
+        ({"gamma": 2}, r"gamma must be a number in \[0, 1\], got 2"),
+        ({"gamma": -0.1}, r"gamma must be a number in \[0, 1\]"),
+        ({"buffer_size": -5}, "buffer_size must be a positive integer"),
+        (
+            {"buffer_size": 3},
+            r"buffer_size must hold at least one batch of graphs: .* = 160 agent-transitions, got 3",
+        ),
+        ({"learning_rate": "abc"}, "learning_rate must be a positive number or a schedule"),
+        ({"learning_rate": -1e-3}, "learning_rate must be a positive number or a schedule"),
+    ],
+)
+@pytest.mark.parametrize("algorithm", [SoftHGRN, SACHGRN])
+def test_bad_algorithm_arguments_raise_naming_the_argument(algorithm, small_env, kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        algorithm("GraphPolicy", small_env, **{"batch_size": 32, **kwargs})
+
+
+def test_good_algorithm_arguments_pass(small_env):
+    model = SoftHGRN("GraphPolicy", small_env, learning_rate=lambda progress: 1e-3 * progress, gamma=1,
+                     buffer_size=160, batch_size=32, train_freq=(1, "episode"))  # fmt: skip
+    assert model.replay_buffer.buffer_size == 32
+
+
+@pytest.mark.parametrize("n_envs", [2.5, "2", 0, True])
+def test_make_graph_vec_env_needs_a_positive_integer_n_envs(n_envs):
+    with pytest.raises(
+        ValueError, match=f"n_envs must be a positive integer \\(env copies\\), got {n_envs!r}"
+    ):
+        make_graph_vec_env("surviving_v0", n_envs=n_envs)
+
+
+def test_train_with_train_freq_0_exits_at_once_naming_it(tmp_path):
+    """It used to hang: collection never ended (a subprocess, so a hang fails the test)."""
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    command = [sys.executable, "-m", "sb3_hgrn", *train_args(tmp_path), "--param", "train_freq=0"]
+    done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=60)
+    assert done.returncode == 2 and "train_freq must be an integer >= 1" in done.stderr
+    assert not (tmp_path / "surviving_v0").exists()

@@ -50,6 +50,53 @@ def check_graph_env(env: Any) -> VecEnv:
     return env
 
 
+def _is_integer(value: Any) -> bool:
+    return isinstance(value, int | np.integer) and not isinstance(value, bool)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool)
+
+
+def check_algorithm_arguments(
+    learning_rate: Any,
+    buffer_size: Any,
+    batch_size: Any,
+    gamma: Any,
+    train_freq: Any,
+    n_agents: int | None = None,
+) -> None:
+    """Raise a ``ValueError`` naming the argument unless the arguments make a model that trains.
+
+    ``learning_rate`` is a positive number or a schedule (a callable), ``batch_size`` a positive
+    integer (graphs), ``0 <= gamma <= 1``, ``train_freq`` at least 1 (vec-steps, or ``(n, unit)``) and
+    ``buffer_size`` an integer of agent-transitions that holds at least one batch of graphs
+    (``batch_size * n_agents``, when the env and so ``n_agents`` is known).
+    """
+    if not callable(learning_rate) and not (_is_number(learning_rate) and learning_rate > 0):
+        raise ValueError(
+            f"learning_rate must be a positive number or a schedule (callable), got {learning_rate!r}."
+        )
+    if not _is_integer(batch_size) or batch_size < 1:
+        raise ValueError(
+            f"batch_size must be a positive integer (graphs per gradient step), got {batch_size!r}."
+        )
+    if not _is_number(gamma) or not 0 <= gamma <= 1:
+        raise ValueError(f"gamma must be a number in [0, 1], got {gamma!r}.")
+    frequency = train_freq[0] if isinstance(train_freq, tuple | list) and train_freq else train_freq
+    if not _is_integer(frequency) or frequency < 1:
+        raise ValueError(
+            f"train_freq must be an integer >= 1 (or a tuple (n >= 1, unit)), got {train_freq!r}."
+        )
+    if not _is_integer(buffer_size) or buffer_size < 1:
+        raise ValueError(f"buffer_size must be a positive integer (agent-transitions), got {buffer_size!r}.")
+    if n_agents is not None and buffer_size < batch_size * n_agents:
+        raise ValueError(
+            f"buffer_size must hold at least one batch of graphs: batch_size * n_agents = {batch_size} * "
+            f"{n_agents} = {batch_size * n_agents} agent-transitions, got {buffer_size}."
+        )
+
+
 def env_action_counts(env: VecEnv) -> list[int]:
     """Action count of every agent group of a graph VecEnv (one group unless it says otherwise)."""
     return [int(n) for n in getattr(env, "group_n_actions", (env.action_space.n,))]
@@ -116,6 +163,14 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
     ):
         if env is not None:
             env = check_graph_env(env)
+        check_algorithm_arguments(
+            learning_rate,
+            buffer_size,
+            batch_size,
+            gamma,
+            train_freq,
+            env.n_agents if env is not None else None,
+        )
         if exploration_initial_eps is None:
             exploration_initial_eps = 0.0 if stochastic else 1.0
         if exploration_final_eps is None:

@@ -343,8 +343,8 @@ def make_graph_vec_env(
     :param seed: copy ``c`` is seeded with ``seed + c`` at the first reset.
     :param env_kwargs: keyword arguments for the env constructor.
     """
-    if n_envs < 1:
-        raise ValueError(f"n_envs must be >= 1, got {n_envs}.")
+    if not isinstance(n_envs, int | np.integer) or isinstance(n_envs, bool) or n_envs < 1:
+        raise ValueError(f"n_envs must be a positive integer (env copies), got {n_envs!r}.")
     env_fn = _resolve_env_fn(env)
     kwargs = dict(env_kwargs or {})
     vec_env = GraphVecEnv([lambda: env_fn(**kwargs) for _ in range(n_envs)])
