@@ -353,3 +353,18 @@ def test_train_with_train_freq_0_exits_at_once_naming_it(tmp_path):
     done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=60)
     assert done.returncode == 2 and "train_freq must be an integer >= 1" in done.stderr
     assert not (tmp_path / "surviving_v0").exists()
+
+
+def test_load_of_the_other_algorithm_says_which_class_to_use(finished_root, small_env, tmp_path):
+    soft = run_of(finished_root) / "model.zip"
+    sac = tmp_path / "sac.zip"
+    SACHGRN("GraphPolicy", small_env, batch_size=4).save(sac)
+    with pytest.raises(
+        ValueError, match="holds a SACHGRN model, not a SoftHGRN one: load it with SACHGRN.load"
+    ):
+        SoftHGRN.load(sac)
+    with pytest.raises(
+        ValueError, match="holds a SoftHGRN model, not a SACHGRN one: load it with SoftHGRN.load"
+    ):
+        SACHGRN.load(soft)
+    assert isinstance(SACHGRN.load(sac), SACHGRN) and isinstance(SoftHGRN.load(soft), SoftHGRN)

@@ -83,3 +83,10 @@ def check_model_file(path: str | os.PathLike) -> None:
         raise DamagedModelFileError(f"damaged model file {path}: member {broken!r} fails its checksum")
     if missing:
         raise DamagedModelFileError(f"damaged model file {path}: no {', '.join(missing)} in the zip")
+
+
+def saved_policy_module(path: str | os.PathLike) -> str:
+    """The module of the policy class recorded in a whole SB3 model zip (``""`` if none is)."""
+    with zipfile.ZipFile(model_file_path(path)) as archive:
+        policy_class = json.loads(archive.read("data")).get("policy_class")
+    return policy_class.get("__module__", "") if isinstance(policy_class, dict) else ""

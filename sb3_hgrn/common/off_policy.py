@@ -23,7 +23,7 @@ from stable_baselines3.common.utils import (
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_hgrn.common.buffers import GraphReplayBuffer
-from sb3_hgrn.common.files import check_model_file
+from sb3_hgrn.common.files import check_model_file, saved_policy_module
 from sb3_hgrn.common.policies import GraphPolicy, check_graph_spaces
 from sb3_hgrn.common.temperature import TemperatureController, group_means, target_entropy
 from sb3_hgrn.common.vec_env import make_graph_vec_env
@@ -95,6 +95,21 @@ def check_algorithm_arguments(
             f"buffer_size must hold at least one batch of graphs: batch_size * n_agents = {batch_size} * "
             f"{n_agents} = {batch_size * n_agents} agent-transitions, got {buffer_size}."
         )
+
+
+def _policy_modules(algorithm: type) -> set[str]:
+    """Modules of the policy classes an algorithm names in its ``policy_aliases``."""
+    return {policy.__module__ for policy in getattr(algorithm, "policy_aliases", {}).values()}
+
+
+def _graph_algorithms() -> list[type[GraphOffPolicyAlgorithm]]:
+    """Every subclass of :class:`GraphOffPolicyAlgorithm` defined so far."""
+    found, todo = [], list(GraphOffPolicyAlgorithm.__subclasses__())
+    while todo:
+        algorithm = todo.pop()
+        found.append(algorithm)
+        todo += algorithm.__subclasses__()
+    return found
 
 
 def env_action_counts(env: VecEnv) -> list[int]:
@@ -323,7 +338,22 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         """
         if isinstance(path, str | os.PathLike):
             check_model_file(path)
+            cls._check_saved_algorithm(path)
         return super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
+
+    @classmethod
+    def _check_saved_algorithm(cls, path: str | os.PathLike) -> None:
+        """Raise a ``ValueError`` saying which class to load with when ``path`` holds a model of
+        another graph algorithm (known by its policy's module; an unknown policy is left to SB3)."""
+        module = saved_policy_module(path)
+        if module in _policy_modules(cls):
+            return
+        for other in _graph_algorithms():
+            if module in _policy_modules(other):
+                raise ValueError(
+                    f"{path} holds a {other.__name__} model, not a {cls.__name__} one: load it with "
+                    f"{other.__name__}.load."
+                )
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return ["policy", *self._optimizer_names(), "temperature.optimizer"], []

@@ -21,7 +21,6 @@ import shutil
 import sys
 import time
 import warnings
-import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +33,7 @@ from sb3_hgrn.common.files import (
     DamagedModelFileError,
     check_model_file,
     save_model_atomically,
+    saved_policy_module,
     write_text_atomically,
 )
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
@@ -525,8 +525,7 @@ def algorithm_of_zip(path: Path) -> type[GraphOffPolicyAlgorithm]:
     import sb3_hgrn
 
     check_model_file(path)
-    with zipfile.ZipFile(path) as archive:
-        module = json.loads(archive.read("data"))["policy_class"].get("__module__", "")
+    module = saved_policy_module(path)
     for name in ("sac_hgrn", "soft_hgrn"):
         if f"sb3_hgrn.{name}" in module:
             return getattr(sb3_hgrn, "SACHGRN" if name == "sac_hgrn" else "SoftHGRN")
