@@ -9,6 +9,10 @@ A run folder (``<root>/<env>/<preset>/seed_<seed>/``) holds::
     checkpoints/        model_<agent-steps>_steps.zip every --save-freq agent-steps (optional)
     model.zip           the final model
     eval.json           the final evaluation; its presence marks the run as complete
+    .lock, .lock.pid    the lock of the process working in the folder, and its pid
+
+Every file but ``team_returns.csv`` (appended to row by row) is written atomically. ``--overwrite``
+moves an old run to ``<folder>.replaced-<UTC time>/`` until the new run has finished.
 """
 
 from __future__ import annotations
@@ -298,21 +302,10 @@ def train_run(
         config.extra = _run_figures(config, env, model)
         write_text_atomically(folder / CONFIG_FILE, yaml.safe_dump(config.to_dict(), sort_keys=False))
 
-        callbacks: list[BaseCallback] = [
-            TeamMonitorCallback(
-                str(folder / TEAM_RETURNS_FILE), env_id=config.env, append=checkpoint is not None
-            )
-        ]
-        if save_freq:
-            callbacks.append(
-                AtomicCheckpointCallback(
-                    max(1, save_freq // env.num_envs), str(folder / CHECKPOINT_DIR), name_prefix="model"
-                )
-            )
         remaining = max(0, config.total_timesteps - model.num_timesteps)
         model.learn(
             remaining,
-            callback=callbacks,
+            callback=_callbacks(folder, config, env, save_freq, resumed=checkpoint is not None),
             log_interval=log_interval,
             progress_bar=progress_bar,
             reset_num_timesteps=checkpoint is None,
@@ -340,6 +333,23 @@ def train_run(
         if replaced is not None:
             shutil.rmtree(replaced, ignore_errors=True)
     return results
+
+
+def _callbacks(
+    folder: Path, config: RunConfig, env: GraphVecEnv, save_freq: int | None, resumed: bool
+) -> list[BaseCallback]:
+    """The training callbacks of a run: ``team_returns.csv`` (continued when ``resumed``) and, with
+    ``save_freq``, atomic checkpoints every ``save_freq`` agent-steps."""
+    callbacks: list[BaseCallback] = [
+        TeamMonitorCallback(str(folder / TEAM_RETURNS_FILE), env_id=config.env, append=resumed)
+    ]
+    if save_freq:
+        callbacks.append(
+            AtomicCheckpointCallback(
+                max(1, save_freq // env.num_envs), str(folder / CHECKPOINT_DIR), name_prefix="model"
+            )
+        )
+    return callbacks
 
 
 def _final_evaluation(config: RunConfig, model: GraphOffPolicyAlgorithm) -> dict[str, Any]:
@@ -535,7 +545,9 @@ def algorithm_of_zip(path: Path) -> type[GraphOffPolicyAlgorithm]:
 def locate_run(path: str | os.PathLike, env: str | None = None) -> tuple[Path, RunConfig]:
     """The model file and run configuration of ``path`` (a run folder, its ``model.zip`` or a checkpoint).
 
-    A bare ``.zip`` outside any run folder needs ``env`` (then the env's defaults are used).
+    A run folder gives its ``model.zip``, else its latest checkpoint; damaged ones are skipped with a
+    warning. A damaged file given by name raises :class:`ConfigError` ("damaged model file"). A bare
+    ``.zip`` outside any run folder needs ``env`` (then the env's defaults are used).
     """
     path = Path(path)
     if path.is_dir():
@@ -549,6 +561,10 @@ def locate_run(path: str | os.PathLike, env: str | None = None) -> tuple[Path, R
             path = Path(f"{path}.zip")
         if not path.exists():
             raise ConfigError(f"No run folder or model file at {path}.")
+        try:
+            check_model_file(path)
+        except DamagedModelFileError as error:
+            raise ConfigError(str(error)) from error
         model_path = path
         candidates = [path.parent, path.parent.parent]
     for folder in candidates:
@@ -576,10 +592,6 @@ def load_run(
 ) -> tuple[GraphOffPolicyAlgorithm, GraphVecEnv, RunConfig]:
     """Load a saved run's model onto a fresh copy of its env (``env_kwargs`` over the run's)."""
     model_path, config = locate_run(path, env)
-    try:
-        check_model_file(model_path)
-    except DamagedModelFileError as error:
-        raise ConfigError(str(error)) from error
     algorithm = PRESETS[config.preset][0] if config.preset in PRESETS else algorithm_of_zip(model_path)
     vec_env = make_env(
         config,
