@@ -26,7 +26,7 @@ from sb3_hgrn.sac_hgrn.sac_hgrn import boltzmann_divergence
 
 
 def collect(model: SACHGRN, env, steps: int) -> list[tuple]:
-    """``steps`` graph batches ``(observations, graph, actor state, critic state)`` of the model's
+    """``steps`` graph batches ``(observations, graph, groups, actor state, critic state)`` of the model's
     own episodes (recurrent states as its policy carried them)."""
     policy, batches = model.policy, []
     obs, state, starts = env.reset(), None, np.ones(env.num_envs, dtype=bool)
@@ -35,7 +35,8 @@ def collect(model: SACHGRN, env, steps: int) -> list[tuple]:
         hidden = np.zeros((env.num_envs, policy.state_dim), np.float32) if state is None else state[0][0]
         hidden = th.as_tensor(hidden * (1.0 - starts[:, None]), dtype=th.float32)
         actor_state, critic_state, *_ = policy.split_state(hidden.reshape(*observations.shape[:2], -1))
-        batches.append((observations, policy.graph_batch(neighbors, groups), actor_state, critic_state))
+        graph = policy.graph_batch(neighbors, groups)
+        batches.append((observations, graph, groups, actor_state, critic_state))
         actions, state = model.predict(obs, state=state, episode_start=starts)
         obs, _, starts, _ = env.step(actions)
     return batches
@@ -45,9 +46,9 @@ def fit_figures(model: SACHGRN, batches: list[tuple], alpha: float) -> dict[str,
     """Mean actor entropy, critic Boltzmann entropy, argmax agreement and top-2 Q gap over ``batches``."""
     policy = model.policy
     figures: dict[str, list[float]] = {"actor": [], "critic": [], "agreement": [], "gap": []}
-    for observations, graph, actor_state, critic_state in batches:
+    for observations, graph, groups, actor_state, critic_state in batches:
         with th.no_grad():
-            logits, _ = policy.actor(observations, graph, actor_state)
+            logits, _ = policy.actor_logits(observations, graph, actor_state, groups)
             q_values, _ = policy.critics[0](observations, graph, critic_state)
         best_two = q_values.topk(2, dim=-1).values
         figures["actor"].append(categorical_entropy(logits).mean().item())
@@ -85,14 +86,14 @@ def main() -> None:
         return
     split = int(0.8 * len(batches))
     train, held_out = batches[:split], batches[split:]
-    actor, critic = model.policy.actor, model.policy.critics[0]
-    optimizer = th.optim.Adam(actor.parameters(), lr=1e-3)
+    policy, critic = model.policy, model.policy.critics[0]
+    optimizer = th.optim.Adam(policy.actor.parameters(), lr=1e-3)
     rng = np.random.default_rng(0)
     for step in range(1, args.fit_steps + 1):
-        observations, graph, actor_state, critic_state = train[rng.integers(len(train))]
+        observations, graph, groups, actor_state, critic_state = train[rng.integers(len(train))]
         with th.no_grad():
             q_values, _ = critic(observations, graph, critic_state)
-        logits, _ = actor(observations, graph, actor_state)
+        logits, _ = policy.actor_logits(observations, graph, actor_state, groups)
         loss = boltzmann_divergence(th.log_softmax(logits, dim=-1), q_values, th.tensor(args.alpha)).mean()
         optimizer.zero_grad()
         loss.backward()

@@ -9,7 +9,7 @@ from gymnasium import spaces
 from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
-from sb3_hgrn.common.hgrn import HGRN
+from sb3_hgrn.common.hgrn import HGRN, GraphBatch
 from sb3_hgrn.common.policies import GraphObs, GraphPolicy
 
 
@@ -20,7 +20,16 @@ class SACHGRNPolicy(GraphPolicy):
     :meth:`~sb3_hgrn.common.policies.GraphPolicy.split_state`): the critics' memories advance while
     acting, so each transition stores the states both networks had.
 
+    The actor's policy is ``softmax(f(o))`` of its network's outputs ``f`` (its logits, as in the
+    paper), or ``softmax(f(o) / alpha)`` with ``tempered_actor``. Both can express the same policies;
+    tempered outputs live in the critic's units (``f = Q`` is the Boltzmann policy every actor loss
+    moves toward), so the actor needs the same output changes as its critic to follow it, not
+    ``1 / alpha`` times larger ones, and a change of alpha changes the actor's entropy at once
+    (docs/results.md has what it did).
+
     :param n_critics: number of critics (2 = clipped double Q).
+    :param tempered_actor: divide the actor's outputs by alpha (only for stochastic policies: a
+        greedy actor's argmax does not depend on alpha).
     :param actor_kwargs: network options of the actor only (e.g. ``dict(communication="none")``).
     :param critic_kwargs: network options of the critics only.
     Other parameters: see :class:`~sb3_hgrn.common.policies.GraphPolicy`.
@@ -34,12 +43,14 @@ class SACHGRNPolicy(GraphPolicy):
         n_critics: int = 1,
         actor_kwargs: dict[str, Any] | None = None,
         critic_kwargs: dict[str, Any] | None = None,
+        tempered_actor: bool = False,
         **kwargs: Any,
     ):
         super().__init__(observation_space, action_space, lr_schedule, **kwargs)
         if n_critics < 1:
             raise ValueError(f"n_critics must be >= 1, got {n_critics}.")
         self.n_critics = n_critics
+        self.tempered_actor = tempered_actor
         self.actor_kwargs = dict(actor_kwargs or {})
         self.critic_kwargs = dict(critic_kwargs or {})
         self.actor = self.make_network(**self.actor_kwargs)
@@ -62,9 +73,23 @@ class SACHGRNPolicy(GraphPolicy):
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
         data.update(
-            n_critics=self.n_critics, actor_kwargs=self.actor_kwargs, critic_kwargs=self.critic_kwargs
+            n_critics=self.n_critics,
+            actor_kwargs=self.actor_kwargs,
+            critic_kwargs=self.critic_kwargs,
+            tempered_actor=self.tempered_actor,
         )
         return data
+
+    def actor_logits(
+        self, observations: th.Tensor, graph: GraphBatch, state: th.Tensor, groups: th.Tensor | None
+    ) -> tuple[th.Tensor, th.Tensor]:
+        """The actor's logits ``(n_graphs, n_agents, n_actions)`` (its outputs over alpha with
+        ``tempered_actor``; alpha detached) and its new state, from observations
+        ``(n_graphs, n_agents, obs_dim)``, the graphs, its state and the agents' group ids (or ``None``)."""
+        outputs, new_state = self.actor(observations, graph, state)
+        if self.tempered_actor and self.stochastic:
+            outputs = outputs / self.temperature.per_agent(groups)
+        return outputs, new_state
 
     def act(
         self, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False
@@ -73,7 +98,7 @@ class SACHGRNPolicy(GraphPolicy):
         n_graphs, n_agents = observations.shape[:2]
         states = self.split_state(hidden.reshape(n_graphs, n_agents, -1))
         graph = self.graph_batch(neighbors, groups)  # shared by the actor and every critic
-        logits, actor_state = self.actor(observations, graph, states[0])
+        logits, actor_state = self.actor_logits(observations, graph, states[0], groups)
         new_states = [actor_state]
         for critic, state in zip(self.critics, states[1:], strict=True):
             new_states.append(critic(observations, graph, state)[1] if critic.state_dim else state)

@@ -185,7 +185,9 @@ class SACHGRN(GraphOffPolicyAlgorithm):
             graph = policy.graph_batch(batch.neighbors, batch.groups)  # shared by actor and critics
             with th.no_grad():
                 next_graph = policy.graph_batch(batch.next_neighbors, batch.groups)
-                next_logits, _ = policy.actor(batch.next_observations, next_graph, next_actor_state)
+                next_logits, _ = policy.actor_logits(
+                    batch.next_observations, next_graph, next_actor_state, batch.groups
+                )
                 next_q = th.stack(
                     [
                         target(batch.next_observations, next_graph, state)[0]
@@ -206,7 +208,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
             th.nn.utils.clip_grad_norm_(policy.critics.parameters(), self.max_grad_norm)
             policy.critic_optimizer.step()
 
-            logits, _ = policy.actor(batch.observations, graph, actor_state)
+            logits, _ = policy.actor_logits(batch.observations, graph, actor_state, batch.groups)
             min_q = th.stack([q.detach() for q in q_values]).amin(dim=0)
             actor_loss = self._policy_loss(logits, min_q, alpha)
             policy.actor_optimizer.zero_grad()
