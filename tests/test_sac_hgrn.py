@@ -129,6 +129,8 @@ def test_bad_arguments():
         quick_model(bit_vec_env(n_envs=1), alpha_entropy="critic")
     with pytest.raises(ValueError, match="n_critics"):
         quick_model(bit_vec_env(n_envs=1), policy_kwargs=dict(n_critics=0))
+    with pytest.raises(ValueError, match="behaviour_policy"):
+        quick_model(bit_vec_env(n_envs=1), behaviour_policy="random")
 
 
 @pytest.mark.parametrize("alpha_entropy", ["actor", "boltzmann"])
@@ -189,3 +191,43 @@ def test_tempered_actor_entropy_and_alpha_follow_the_target():
         )  # fmt: skip
     assert categorical_entropy(logits).mean().item() < 0.3 * math.log(9) + 0.5
     assert policy.temperature.alpha.item() > 0.003
+
+
+def _prefer(network, action: int) -> None:
+    """Make ``network`` output 10 for ``action`` and 0 for the other action, whatever it sees."""
+    head = network.head[0]
+    with th.no_grad():
+        head.weight.zero_()
+        head.bias.zero_()
+        head.bias[action] = 10.0
+
+
+@pytest.mark.parametrize("behaviour_policy, collected", [("actor", 0), ("critic", 1)])
+def test_behaviour_policy_chooses_the_network_that_collects(behaviour_policy, collected):
+    """The agents collect with the actor, or with the critic's Boltzmann policy; ``predict`` always
+    acts with the actor."""
+    env = bit_vec_env(n_envs=2)
+    model = quick_model(env, behaviour_policy=behaviour_policy, learning_starts=0, gradient_steps=0)
+    model.policy.temperature.reset(0.5)
+    _prefer(model.policy.actor, 0)
+    _prefer(model.policy.critics[0], 1)
+    model.learn(8 * 25)
+    stored = model.replay_buffer.actions[: model.replay_buffer.pos]
+    assert (stored == collected).mean() > 0.99  # the other action has probability e^-20
+    actions, _ = model.predict(env.reset())
+    assert (actions == 0).all()
+
+
+def test_critic_act_advances_every_memory_as_act_does():
+    env = bit_vec_env(n_envs=2)
+    policy = quick_model(env, policy_kwargs=dict(hidden_dim=16, n_critics=2)).policy
+    obs, _ = policy.obs_to_tensor(env.reset())
+    hidden = th.randn(8, policy.state_dim)
+    with th.no_grad():
+        _, from_actor = policy.act(obs, hidden)
+        actions, from_critic = policy.critic_act(obs, hidden, deterministic=True)
+        observations, neighbors, groups = policy.to_graphs(obs)
+        state = policy.split_state(hidden.reshape(2, 4, -1))[1]
+        q_values, _ = policy.critics[0](observations, policy.graph_batch(neighbors, groups), state)
+    th.testing.assert_close(from_critic, from_actor)
+    th.testing.assert_close(actions, q_values.argmax(dim=-1).reshape(-1))

@@ -383,9 +383,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         """Exploration actions ``(n_envs,)`` and the new recurrent state ``(n_envs, state_dim)``."""
         obs_tensor, _ = self.policy.obs_to_tensor(self._last_obs)
         with th.no_grad():
-            actions, new_hidden = self.policy.act(
-                obs_tensor, th.as_tensor(hidden, device=self.device), deterministic=False
-            )
+            actions, new_hidden = self._behaviour_act(obs_tensor, th.as_tensor(hidden, device=self.device))
         actions = actions.cpu().numpy()
         mask = self._last_obs.get("action_mask")
         n_actions = int(self.action_space.n) if mask is None else mask.sum(axis=1)  # per slot
@@ -395,6 +393,11 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
             explore = np.random.random(self.n_envs) < self.exploration_rate
             actions = np.where(explore, np.random.randint(0, n_actions, size=self.n_envs), actions)
         return actions, new_hidden.cpu().numpy()
+
+    def _behaviour_act(self, obs: dict[str, th.Tensor], hidden: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """The policy's sampled actions ``(n_envs,)`` to collect with, before epsilon-random ones, and
+        the new recurrent state ``(n_envs, state_dim)``."""
+        return self.policy.act(obs, hidden, deterministic=False)
 
     def _final_observations(self, new_obs: dict[str, np.ndarray], dones: np.ndarray, infos: list[dict]):
         """Next observations with each ended episode's final observation, and true terminations."""

@@ -94,14 +94,32 @@ class SACHGRNPolicy(GraphPolicy):
     def act(
         self, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False
     ) -> tuple[th.Tensor, th.Tensor]:
+        return self._act(obs, hidden, deterministic, with_critic=False)
+
+    def critic_act(
+        self, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False
+    ) -> tuple[th.Tensor, th.Tensor]:
+        """As :meth:`act`, with the actions drawn from the first critic's Boltzmann policy
+        ``softmax(Q / alpha)`` (greedy: its argmax) instead of the actor's; every network's memory
+        advances as in :meth:`act`."""
+        return self._act(obs, hidden, deterministic, with_critic=True)
+
+    def _act(
+        self, obs: GraphObs, hidden: th.Tensor, deterministic: bool, with_critic: bool
+    ) -> tuple[th.Tensor, th.Tensor]:
         observations, neighbors, groups = self.to_graphs(obs)
         n_graphs, n_agents = observations.shape[:2]
         states = self.split_state(hidden.reshape(n_graphs, n_agents, -1))
         graph = self.graph_batch(neighbors, groups)  # shared by the actor and every critic
         logits, actor_state = self.actor_logits(observations, graph, states[0], groups)
         new_states = [actor_state]
-        for critic, state in zip(self.critics, states[1:], strict=True):
-            new_states.append(critic(observations, graph, state)[1] if critic.state_dim else state)
+        for index, (critic, state) in enumerate(zip(self.critics, states[1:], strict=True)):
+            if critic.state_dim or (with_critic and index == 0):
+                q_values, new_state = critic(observations, graph, state)
+                if with_critic and index == 0:
+                    logits = q_values / self.temperature.per_agent(groups)
+                state = new_state if critic.state_dim else state
+            new_states.append(state)
         if deterministic or not self.stochastic:
             actions = logits.argmax(dim=-1)
         else:

@@ -17,6 +17,7 @@ from sb3_hgrn.sac_hgrn.policies import SACHGRNPolicy
 
 ACTOR_LOSSES = ("boltzmann", "standard", "policy_gradient")
 ALPHA_ENTROPIES = ("actor", "boltzmann")
+BEHAVIOUR_POLICIES = ("actor", "critic")
 
 
 def boltzmann_divergence(log_probs: th.Tensor, q_values: th.Tensor, alpha: th.Tensor | None) -> th.Tensor:
@@ -67,8 +68,13 @@ class SACHGRN(GraphOffPolicyAlgorithm):
     :param alpha_entropy: the entropy alpha steers toward the target: ``"actor"`` (the actor's, as in
         the paper) or ``"boltzmann"`` (that of the critic's Boltzmann policy ``softmax(Q / alpha)``,
         which every actor loss moves the actor toward; as in SoftHGRN).
-    :param policy_kwargs: network options for both networks, plus ``n_critics``, ``actor_kwargs``
-        and ``critic_kwargs`` (options of one network only).
+    :param behaviour_policy: the policy the agents act with while collecting: ``"actor"`` (as in
+        the paper) or ``"critic"``, the first critic's Boltzmann policy ``softmax(Q / alpha)``, the
+        policy every actor loss moves the actor toward. The actor and the critics learn the same way
+        either way (off-policy), and ``predict`` always acts with the actor. Use it with
+        ``tempered_actor``, which keeps alpha from collapsing (docs/results.md has why and what it did).
+    :param policy_kwargs: network options for both networks, plus ``n_critics``, ``actor_kwargs``,
+        ``critic_kwargs`` (options of one network only) and ``tempered_actor``.
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"GraphPolicy": SACHGRNPolicy}
@@ -95,6 +101,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
         stochastic: bool = True,
         actor_loss: str = "boltzmann",
         alpha_entropy: str = "actor",
+        behaviour_policy: str = "actor",
         exploration_fraction: float = 0.1,
         exploration_initial_eps: float | None = None,
         exploration_final_eps: float | None = None,
@@ -112,6 +119,10 @@ class SACHGRN(GraphOffPolicyAlgorithm):
             raise ValueError(f"actor_loss must be one of {ACTOR_LOSSES}, got {actor_loss!r}.")
         if alpha_entropy not in ALPHA_ENTROPIES:
             raise ValueError(f"alpha_entropy must be one of {ALPHA_ENTROPIES}, got {alpha_entropy!r}.")
+        if behaviour_policy not in BEHAVIOUR_POLICIES:
+            raise ValueError(
+                f"behaviour_policy must be one of {BEHAVIOUR_POLICIES}, got {behaviour_policy!r}."
+            )
         super().__init__(
             policy,
             env,
@@ -144,11 +155,17 @@ class SACHGRN(GraphOffPolicyAlgorithm):
         )
         self.actor_loss = actor_loss
         self.alpha_entropy = alpha_entropy
+        self.behaviour_policy = behaviour_policy
         if _init_setup_model:
             self._setup_model()
 
     def _optimizer_names(self) -> list[str]:
         return ["policy.actor_optimizer", "policy.critic_optimizer"]
+
+    def _behaviour_act(self, obs: dict[str, th.Tensor], hidden: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        if self.behaviour_policy == "critic":
+            return self.policy.critic_act(obs, hidden)
+        return super()._behaviour_act(obs, hidden)
 
     def _next_value(self, next_q: th.Tensor, next_logits: th.Tensor, alpha: th.Tensor) -> th.Tensor:
         """Value ``(batch, n_agents)`` of the next observations from target Q-values and actor logits
