@@ -131,6 +131,22 @@ def test_bad_arguments():
         quick_model(bit_vec_env(n_envs=1), policy_kwargs=dict(n_critics=0))
     with pytest.raises(ValueError, match="behaviour_policy"):
         quick_model(bit_vec_env(n_envs=1), behaviour_policy="random")
+    with pytest.raises(ValueError, match="actor_steps"):
+        quick_model(bit_vec_env(n_envs=1), actor_steps=0)
+
+
+@pytest.mark.parametrize("actor_steps", [1, 3])
+def test_actor_takes_actor_steps_per_critic_step(actor_steps):
+    """Each gradient step updates the critic once and the actor ``actor_steps`` times, on one batch."""
+    model = quick_model(bit_vec_env(n_envs=1), actor_steps=actor_steps, learning_starts=0)
+    model.learn(4 * 20)
+    policy = model.policy
+
+    def adam_steps(optimizer):
+        return {int(state["step"]) for state in optimizer.state.values()}
+
+    assert adam_steps(policy.critic_optimizer) == {model._n_updates}
+    assert adam_steps(policy.actor_optimizer) == {actor_steps * model._n_updates}
 
 
 @pytest.mark.parametrize("alpha_entropy", ["actor", "boltzmann"])

@@ -73,6 +73,8 @@ class SACHGRN(GraphOffPolicyAlgorithm):
         policy every actor loss moves the actor toward. The actor and the critics learn the same way
         either way (off-policy), and ``predict`` always acts with the actor. Use it with
         ``tempered_actor``, which keeps alpha from collapsing (docs/results.md has why and what it did).
+    :param actor_steps: actor gradient steps on each batch, after its one critic step: more let the
+        actor keep up with a critic that moves fast (docs/results.md).
     :param policy_kwargs: network options for both networks, plus ``n_critics``, ``actor_kwargs``,
         ``critic_kwargs`` (options of one network only) and ``tempered_actor``.
     """
@@ -102,6 +104,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
         actor_loss: str = "boltzmann",
         alpha_entropy: str = "actor",
         behaviour_policy: str = "actor",
+        actor_steps: int = 1,
         exploration_fraction: float = 0.1,
         exploration_initial_eps: float | None = None,
         exploration_final_eps: float | None = None,
@@ -123,6 +126,8 @@ class SACHGRN(GraphOffPolicyAlgorithm):
             raise ValueError(
                 f"behaviour_policy must be one of {BEHAVIOUR_POLICIES}, got {behaviour_policy!r}."
             )
+        if actor_steps < 1:
+            raise ValueError(f"actor_steps must be >= 1, got {actor_steps}.")
         super().__init__(
             policy,
             env,
@@ -156,6 +161,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
         self.actor_loss = actor_loss
         self.alpha_entropy = alpha_entropy
         self.behaviour_policy = behaviour_policy
+        self.actor_steps = actor_steps
         if _init_setup_model:
             self._setup_model()
 
@@ -225,13 +231,14 @@ class SACHGRN(GraphOffPolicyAlgorithm):
             th.nn.utils.clip_grad_norm_(policy.critics.parameters(), self.max_grad_norm)
             policy.critic_optimizer.step()
 
-            logits, _ = policy.actor_logits(batch.observations, graph, actor_state, batch.groups)
             min_q = th.stack([q.detach() for q in q_values]).amin(dim=0)
-            actor_loss = self._policy_loss(logits, min_q, alpha)
-            policy.actor_optimizer.zero_grad()
-            actor_loss.backward()
-            th.nn.utils.clip_grad_norm_(policy.actor.parameters(), self.max_grad_norm)
-            policy.actor_optimizer.step()
+            for _ in range(self.actor_steps):
+                logits, _ = policy.actor_logits(batch.observations, graph, actor_state, batch.groups)
+                actor_loss = self._policy_loss(logits, min_q, alpha)
+                policy.actor_optimizer.zero_grad()
+                actor_loss.backward()
+                th.nn.utils.clip_grad_norm_(policy.actor.parameters(), self.max_grad_norm)
+                policy.actor_optimizer.step()
 
             steered = logits if self.alpha_entropy == "actor" else min_q / alpha
             entropy, alpha_gradient = self._update_temperature(categorical_entropy(steered), batch.groups)
