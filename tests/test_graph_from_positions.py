@@ -116,6 +116,7 @@ def test_agents_at_one_point_list_themselves_first():
         (dict(k=2, radius=1.0, max_neighbors=3), "not both"),
         (dict(radius=-1.0, max_neighbors=3), "radius must be a finite number >= 0"),
         (dict(radius=float("nan"), max_neighbors=3), "radius must be a finite number >= 0"),
+        (dict(radius=float("inf"), max_neighbors=3), "radius must be a finite number >= 0"),
         (dict(radius=1.0), "radius needs max_neighbors"),
         (dict(radius=1.0, max_neighbors=0), "radius needs max_neighbors"),
         (dict(k=2, max_neighbors=3), "max_neighbors is the list width of radius mode"),
@@ -143,7 +144,7 @@ def test_bad_agent_count_is_rejected():
         (np.zeros((3, 2)), None, r"shape \(n_agents=4, dim\)"),
         (np.zeros(4), None, r"shape \(n_agents=4, dim\)"),
         (np.zeros((4, 0)), None, r"shape \(n_agents=4, dim\)"),
-        (np.full((4, 2), np.nan), None, "finite"),
+        (np.full((4, 2), np.nan), None, "positions must be finite"),
         (np.array([["a", "b"]] * 4), None, "real numbers"),
         (np.zeros((4, 3)), [1.0, 2.0], "world_size has 2 sides for positions of dim 3"),
     ],
@@ -270,12 +271,14 @@ def test_make_graph_vec_env_takes_an_env_module():
 
 def test_parallelizable_aec_env_is_converted_and_turn_based_is_refused():
     aec = parallel_to_aec_wrapper(SwarmEnv(4))  # an AEC env, not the wrapper pettingzoo unwraps again
-    wrapped = GraphFromPositions(aec, lambda env: env.unwrapped.xy, k=2)
+    seen = []
+    wrapped = GraphFromPositions(aec, lambda env: seen.append(env) or env.unwrapped.xy, k=2)
     assert isinstance(wrapped.env, aec_to_parallel_wrapper)
     vec_env = make_graph_vec_env(wrapped, seed=0)
     obs = vec_env.reset()
     np.testing.assert_array_equal(obs["neighbors"], brute_force(aec.unwrapped.xy, k=2))
     vec_env.step(np.zeros(4, dtype=int))
+    assert seen == [aec, aec]  # positions() gets the env as given, not its parallel conversion
     aec.metadata = {**aec.metadata, "is_parallelizable": False}
     with pytest.raises(TypeError, match="is_parallelizable=True"):
         make_graph_vec_env(aec)
