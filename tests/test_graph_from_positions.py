@@ -105,6 +105,9 @@ def test_agents_at_one_point_list_themselves_first():
     lists = PositionGraph(5, k=2).neighbors(np.zeros((5, 2)))
     np.testing.assert_array_equal(lists[:, 0], np.arange(5))
     assert (lists[:, 1] < lists[:, 2]).all() and (lists[:, 1:] != lists[:, :1]).all() and (lists >= 0).all()
+    np.testing.assert_array_equal(
+        PositionGraph(5, radius=1.0, max_neighbors=1).neighbors(np.zeros((5, 2))), [[0], [1], [2], [3], [4]]
+    )
 
 
 @pytest.mark.parametrize(

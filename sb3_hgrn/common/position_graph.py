@@ -123,15 +123,21 @@ class PositionGraph:
 def _self_first_rows(distances: np.ndarray, others: np.ndarray) -> np.ndarray:
     """Reorder KD-tree results ``(n_agents, width)`` to the agent itself, then by distance and index.
 
-    Where the tree returned ``width`` other agents at distance 0 and not the agent itself, the
-    agent takes the last place before the reordering.
+    The tree lists each row by distance already, so only rows with a repeated finite distance (or
+    without the agent first) are sorted again. Where the tree returned ``width`` other agents at
+    distance 0 and not the agent itself, the agent takes the last place before the reordering.
     """
     owners = np.arange(len(others))[:, None]
-    missing_self = ~(others == owners).any(axis=1)
-    others[missing_self, -1] = owners[missing_self, 0]
-    distances[missing_self, -1] = 0.0
-    order = np.lexsort((others, distances, others != owners), axis=-1)
-    return np.take_along_axis(others, order, axis=1).astype(np.int64, copy=False)
+    ties = (distances[:, 1:] == distances[:, :-1]) & np.isfinite(distances[:, 1:])
+    rows = np.flatnonzero(ties.any(axis=1) | (others[:, 0] != owners[:, 0]))
+    if len(rows):
+        row_others, row_distances, row_owners = others[rows], distances[rows], owners[rows]
+        missing_self = ~(row_others == row_owners).any(axis=1)
+        row_others[missing_self, -1] = row_owners[missing_self, 0]
+        row_distances[missing_self, -1] = 0.0
+        order = np.lexsort((row_others, row_distances, row_others != row_owners), axis=-1)
+        others[rows] = np.take_along_axis(row_others, order, axis=1)
+    return others.astype(np.int64, copy=False)
 
 
 def _world_size(world_size: float | Sequence[float] | None) -> np.ndarray | None:
