@@ -120,6 +120,7 @@ def test_agents_at_one_point_list_themselves_first():
         (dict(radius=-1.0, max_neighbors=3), "radius must be a finite number >= 0"),
         (dict(radius=float("nan"), max_neighbors=3), "radius must be a finite number >= 0"),
         (dict(radius=float("inf"), max_neighbors=3), "radius must be a finite number >= 0"),
+        (dict(radius="1", max_neighbors=3), "radius must be a finite number >= 0"),
         (dict(radius=1.0), "radius needs max_neighbors"),
         (dict(radius=1.0, max_neighbors=0), "radius needs max_neighbors"),
         (dict(k=2, max_neighbors=3), "max_neighbors is the list width of radius mode"),

@@ -14,6 +14,7 @@ are ``n_agents`` wide by definition, so its output and cost grow with the square
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Sequence
 
 import numpy as np
@@ -52,7 +53,7 @@ class PositionGraph:
             raise ValueError("Pass k (k nearest neighbours) or radius (neighbours within it), not both.")
         if k is not None and (not _is_count(k) or k < 1):
             raise ValueError(f"k must be a positive integer (neighbours besides the agent), got {k!r}.")
-        if radius is not None and not (np.isscalar(radius) and np.isfinite(radius) and radius >= 0):
+        if radius is not None and not _is_distance(radius):
             raise ValueError(f"radius must be a finite number >= 0, got {radius!r}.")
         if radius is None and max_neighbors is not None:
             raise ValueError(
@@ -148,6 +149,11 @@ def _world_size(world_size: float | Sequence[float] | None) -> np.ndarray | None
     if sides.ndim > 1 or sides.size == 0 or not (np.isfinite(sides).all() and (sides > 0).all()):
         raise ValueError(f"world_size must be a positive side length or one per axis, got {world_size!r}.")
     return sides
+
+
+def _is_distance(value: object) -> bool:
+    """Whether ``value`` is a finite real number ``>= 0``."""
+    return isinstance(value, numbers.Real) and bool(np.isfinite(value)) and value >= 0
 
 
 def _is_count(value: object) -> bool:
