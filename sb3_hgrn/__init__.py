@@ -2,6 +2,7 @@
 
 from sb3_hgrn.common.evaluation import GraphEvalCallback, RandomGraphPolicy, evaluate_graph_policy
 from sb3_hgrn.common.vec_env import GraphVecEnv, make_graph_vec_env
+from sb3_hgrn.common.wrappers import GraphFromPositions
 from sb3_hgrn.sac_hgrn import SACHGRN
 from sb3_hgrn.soft_hgrn import SoftHGRN
 
@@ -9,6 +10,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "GraphEvalCallback",
+    "GraphFromPositions",
     "GraphVecEnv",
     "RandomGraphPolicy",
     "SACHGRN",

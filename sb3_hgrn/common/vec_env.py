@@ -19,15 +19,17 @@ from __future__ import annotations
 
 import importlib
 from collections.abc import Callable, Sequence
+from types import ModuleType
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from pettingzoo import ParallelEnv
+from pettingzoo import AECEnv, ParallelEnv
 from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
 from sb3_hgrn.common.graph_env import GraphParallelEnv
+from sb3_hgrn.common.wrappers import as_parallel_env
 
 REGISTERED_ENVS = ("surviving_v0", "uav_mbs_v0", "pursuit_v0", "ctc_v0")
 NEIGHBOR_INDEX_HIGH = np.iinfo(np.int32).max
@@ -58,7 +60,8 @@ class ParallelEnvAdapter(GraphParallelEnv):
         if not callable(getattr(env, "neighbors", None)):
             raise TypeError(
                 f"{type(env).__name__} supplies no communication graph: a ParallelEnv used with "
-                "make_graph_vec_env must define neighbors() -> (n_agents, max_neighbors) int array."
+                "make_graph_vec_env must define neighbors() -> (n_agents, max_neighbors) int array. "
+                "Wrap it in sb3_hgrn.GraphFromPositions(env, positions, k=...) to link agents by position."
             )
         self.max_neighbors = int(env.max_neighbors)
         self.render_mode = getattr(env, "render_mode", None)
@@ -114,18 +117,19 @@ def _check_groups(env: GraphParallelEnv) -> None:
 
 
 def as_graph_env(env: Any) -> GraphParallelEnv:
-    """Return ``env`` with the array API, or raise a ``TypeError`` naming what is wrong with it."""
+    """Return ``env`` with the array API, or raise a ``TypeError`` naming what is wrong with it.
+
+    A parallelizable PettingZoo AEC env is converted to a ``ParallelEnv`` first (:func:`as_parallel_env`).
+    """
     if isinstance(env, GraphParallelEnv):
         return env
-    if isinstance(env, ParallelEnv):
-        return ParallelEnvAdapter(env)
     if isinstance(env, gym.Env):
         raise TypeError(
             f"Got the single-agent gymnasium env {type(env).__name__}; sb3_hgrn needs a many-agent "
             "PettingZoo ParallelEnv with a communication graph (use stable-baselines3 directly for "
             "single-agent envs)."
         )
-    raise TypeError(f"Expected a PettingZoo ParallelEnv, got {type(env).__name__}.")
+    return ParallelEnvAdapter(as_parallel_env(env))
 
 
 class GraphVecEnv(VecEnv):
@@ -317,35 +321,57 @@ class GraphVecEnv(VecEnv):
         return [False for _ in self._get_indices(indices)]
 
 
-def _resolve_env_fn(env: str | Callable[..., Any]) -> Callable[..., Any]:
+def _resolve_env_fn(
+    env: str | ModuleType | ParallelEnv | AECEnv | Callable[..., Any], n_envs: int, has_kwargs: bool
+) -> Callable[..., Any]:
+    """The constructor of one env copy named by ``env`` (see :func:`make_graph_vec_env`)."""
     if isinstance(env, str):
         if env not in REGISTERED_ENVS:
             raise ValueError(f"Unknown env {env!r}; registered envs: {', '.join(REGISTERED_ENVS)}.")
         return importlib.import_module(f"sb3_hgrn.envs.{env}").parallel_env
+    if isinstance(env, ModuleType):
+        if not callable(getattr(env, "parallel_env", None)):
+            raise TypeError(
+                f"Module {env.__name__} has no parallel_env(); pass a callable returning a ParallelEnv."
+            )
+        return env.parallel_env
+    if isinstance(env, ParallelEnv | AECEnv):
+        if n_envs != 1 or has_kwargs:
+            raise ValueError(
+                f"An env instance ({type(env).__name__}) makes one copy and takes no env_kwargs; for "
+                f"n_envs={n_envs} or env_kwargs pass a callable that builds a new env at each call, "
+                "e.g. lambda **kwargs: GraphFromPositions(MyEnv(**kwargs), positions, k=4)."
+            )
+        return lambda: env
     if callable(env):
         return env
     raise TypeError(
-        f"env must be a registered env name or a callable returning a ParallelEnv, got {type(env).__name__}."
+        "env must be a registered env name, a callable returning a PettingZoo ParallelEnv, an env "
+        f"module with parallel_env(), or (for n_envs=1) a ParallelEnv or AEC env; got {type(env).__name__}."
     )
 
 
 def make_graph_vec_env(
-    env: str | Callable[..., Any],
+    env: str | ModuleType | ParallelEnv | AECEnv | Callable[..., Any],
     n_envs: int = 1,
     seed: int | None = None,
     env_kwargs: dict[str, Any] | None = None,
 ) -> GraphVecEnv:
     """Create a :class:`GraphVecEnv` of ``n_envs`` copies of a many-agent env.
 
-    :param env: a registered env name (``"surviving_v0"``) or a callable returning a PettingZoo
-        ``ParallelEnv`` (called with ``**env_kwargs``).
+    :param env: a registered env name (``"surviving_v0"``), a callable returning a PettingZoo
+        ``ParallelEnv`` (called with ``**env_kwargs``), a module with such a ``parallel_env``
+        (PettingZoo's env modules), or, for ``n_envs=1`` without ``env_kwargs``, an env instance.
+        A PettingZoo AEC env is accepted wherever a ``ParallelEnv`` is if its metadata declares
+        ``is_parallelizable``. The env must supply a graph (``neighbors()`` and ``max_neighbors``);
+        :class:`sb3_hgrn.GraphFromPositions` adds one built from agent positions.
     :param n_envs: number of env copies; the VecEnv has ``n_envs * n_agents`` slots.
     :param seed: copy ``c`` is seeded with ``seed + c`` at the first reset.
     :param env_kwargs: keyword arguments for the env constructor.
     """
     if not isinstance(n_envs, int | np.integer) or isinstance(n_envs, bool) or n_envs < 1:
         raise ValueError(f"n_envs must be a positive integer (env copies), got {n_envs!r}.")
-    env_fn = _resolve_env_fn(env)
+    env_fn = _resolve_env_fn(env, n_envs, bool(env_kwargs))
     kwargs = dict(env_kwargs or {})
     vec_env = GraphVecEnv([lambda: env_fn(**kwargs) for _ in range(n_envs)])
     if seed is not None:
