@@ -266,6 +266,7 @@ def test_reproduce_table1_writes_tables_and_resumes(tmp_path):
     assert f"| Random | {random} [{random}, {random}] | {random} | - |" in table
     assert "| 1,200 | 200 | 2 |" in table and "## Across envs" in table
     assert (tmp_path / "table1_aggregate.csv").exists() and (tmp_path / "table1_improvement.csv").exists()
+    assert "Probability of improvement" not in table  # no ablation of Soft-HGRN and no CTC run here
 
     runs = tmp_path / "table1" / "surviving_v0"
     kept = (runs / "dqn" / "seed_0" / "eval.json").stat().st_mtime_ns

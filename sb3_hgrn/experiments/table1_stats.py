@@ -317,45 +317,50 @@ def improvement_markdown(
     return lines
 
 
-def markdown_sections(tables: RobustTables, envs: Sequence[str], presets: Sequence[str]) -> list[str]:
-    """The markdown of the statistics across envs and of the key comparisons."""
-    lines = ["", "## Across envs", ""]
+def aggregate_markdown(tables: RobustTables) -> list[str]:
+    """The markdown of the normalised IQM across envs: its anchors and one row per method."""
     if not tables.anchors:
-        lines += ["No env has a Random run and a method beating it: nothing to normalise.", ""]
-    else:
-        anchored = "; ".join(
-            f"{ENV_TITLES.get(a.env, a.env)}: 0 = Random {a.random:.1f}, "
-            f"1 = {_title(a.best_preset)} {a.best:.1f}"
-            for a in tables.anchors
+        return ["No env has a Random run and a method beating it: nothing to normalise."]
+    anchored = "; ".join(
+        f"{ENV_TITLES.get(a.env, a.env)}: 0 = Random {a.random:.1f}, 1 = {_title(a.best_preset)} {a.best:.1f}"
+        for a in tables.anchors
+    )
+    lines = [
+        "Scores normalised per env, `(score - Random) / (best - Random)` with the means over seeds "
+        f"of the Random row and of the best method ({anchored}). IQM over the runs of all these envs "
+        "with its 95 % stratified-bootstrap interval (seeds finished on every env); performance "
+        f"profiles in `{PROFILE_FILE}`.",
+        "",
+        "| Algorithm | normalised IQM [95 % CI] | runs per env |",
+        "|---|---|---|",
+    ]
+    for row in tables.aggregate:
+        cell = format_interval(
+            row["normalised_iqm"], row["normalised_iqm_low"], row["normalised_iqm_high"], _two_decimals
         )
-        lines += [
-            "Scores normalised per env, `(score - Random) / (best - Random)` with the means over seeds "
-            f"of the Random row and of the best method ({anchored}). IQM over the runs of all these envs "
-            "with its 95 % stratified-bootstrap interval (seeds finished on every env); performance "
-            f"profiles in `{PROFILE_FILE}`.",
-            "",
-            "| Algorithm | normalised IQM [95 % CI] | runs per env |",
-            "|---|---|---|",
-        ]
-        for row in tables.aggregate:
-            cell = format_interval(
-                row["normalised_iqm"], row["normalised_iqm_low"], row["normalised_iqm_high"], _two_decimals
-            )
-            lines.append(f"| {_title(row['preset'])} | {cell} | {row['runs_per_env']} |")
-        lines.append("")
-    lines += [
+        lines.append(f"| {_title(row['preset'])} | {cell} | {row['runs_per_env']} |")
+    return lines
+
+
+def improvement_section(tables: RobustTables, envs: Sequence[str], presets: Sequence[str]) -> list[str]:
+    """The markdown of the key comparisons: ablations per env and over all envs, CTC twins where they
+    ran (no lines when there is no comparison)."""
+    ablations = ablation_pairs(presets)
+    compared_on_ctc = {(row["x"], row["y"]) for row in tables.improvement if row["env"] == CTC_ENV}
+    twins = [pair for pair in twin_pairs() if pair in compared_on_ctc]
+    if not (ablations or twins):
+        return []
+    lines = [
+        "",
         "## Probability of improvement",
         "",
         "P(X > Y): the probability that a run of X scores above a run of Y on the same env (ties count "
         "half; over all envs: the average over envs), with its 95 % bootstrap interval. 0.5: no difference.",
     ]
-    ablations = ablation_pairs(presets)
     if ablations:
         columns = [*envs, ALL_ENVS] if len(envs) > 1 else list(envs)
         lines += ["", "The paper's methods against each of their ablations:", ""]
         lines += improvement_markdown(tables, columns, ablations)
-    compared_on_ctc = {(row["x"], row["y"]) for row in tables.improvement if row["env"] == CTC_ENV}
-    twins = [pair for pair in twin_pairs() if pair in compared_on_ctc]
     if twins:
         lines += [
             "",
@@ -365,3 +370,14 @@ def markdown_sections(tables: RobustTables, envs: Sequence[str], presets: Sequen
             *improvement_markdown(tables, [CTC_ENV], twins),
         ]
     return lines
+
+
+def markdown_sections(tables: RobustTables, envs: Sequence[str], presets: Sequence[str]) -> list[str]:
+    """The markdown of the statistics across envs and of the key comparisons."""
+    return [
+        "",
+        "## Across envs",
+        "",
+        *aggregate_markdown(tables),
+        *improvement_section(tables, envs, presets),
+    ]
