@@ -47,6 +47,9 @@ PRESETS: dict[str, tuple[type[GraphOffPolicyAlgorithm], dict[str, Any]]] = {
     "sac_dgrn": (SACHGRN, dict(policy_kwargs=dict(OWN_GROUP))),
 }
 
+HGAT_TWINS = {"dgn": "hgn", "soft_dgrn": "soft_hgrn", "sac_dgrn": "sac_hgrn"}
+"""Homogeneous-attention preset -> its HGAT original."""
+
 TABLE1 = (
     "dqn", "commnet", "maac", "dgn",
     "soft_hgrn", "soft_hgrn-G", "soft_hgrn-R", "soft_hgrn-S",

@@ -258,10 +258,15 @@ def test_reproduce_table1_writes_tables_and_resumes(tmp_path):
             "200" if trained else "0"
         )
         assert float(row["wall_time_s"]) >= (0.01 if trained else 0.0) and row["mean"] != ""
+        assert row["iqm"] == row["iqm_low"] == row["iqm_high"] == row["mean"]  # one seed: no spread
     table = (tmp_path / "table1.md").read_text()
     assert "budget `ci`" in table and "smaller than the paper's" in table and "| Soft-HGRN | " in table
     assert "194 +- 41" in table and "-7453 +- 74" in table  # the paper's figures beside ours
-    assert f"| Random | {float(rows[2]['mean']):.1f} | - |" in table and "| 1,200 | 200 | 2 |" in table
+    random = f"{float(rows[2]['mean']):.1f}"
+    assert f"| Random | {random} [{random}, {random}] | {random} | - |" in table
+    assert "| 1,200 | 200 | 2 |" in table and "## Across envs" in table
+    assert (tmp_path / "table1_aggregate.csv").exists() and (tmp_path / "table1_improvement.csv").exists()
+    assert "Probability of improvement" not in table  # no ablation of Soft-HGRN and no CTC run here
 
     runs = tmp_path / "table1" / "surviving_v0"
     kept = (runs / "dqn" / "seed_0" / "eval.json").stat().st_mtime_ns
@@ -278,7 +283,7 @@ def test_reproduce_table1_writes_tables_and_resumes(tmp_path):
     rows = write_tables(tmp_path, "ci", ["surviving_v0"], ["dqn", "dgn"], [0, 1])
     assert rows[1]["mean"] is None and rows[0]["seeds_done"] == 1
     table = (tmp_path / "table1.md").read_text()
-    assert "| DGN | - | -286 +- 67 |" in table and "(1/2)" in table
+    assert "| DGN | - | - | -286 +- 67 |" in table and "(1/2)" in table
 
 
 def test_random_anchor_follows_the_evaluation_protocol(tmp_path):

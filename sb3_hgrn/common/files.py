@@ -8,11 +8,12 @@ either the old file or the new one, never half of one.
 from __future__ import annotations
 
 import contextlib
+import csv
 import json
 import os
 import zipfile
 import zlib
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import IO, Any
 
@@ -48,6 +49,17 @@ def write_text_atomically(path: str | os.PathLike, text: str) -> None:
     """Write ``text`` to ``path`` with :func:`atomic_write`."""
     with atomic_write(path) as file:
         file.write(text)
+
+
+def write_csv_atomically(path: str | os.PathLike, rows: Sequence[dict[str, Any]]) -> None:
+    """Write ``rows`` as a CSV file with :func:`atomic_write`: one column per key (in order of first
+    appearance), ``None`` as an empty cell."""
+    fields = list(dict.fromkeys(key for row in rows for key in row))
+    with atomic_write(path) as file:
+        writer = csv.DictWriter(file, fieldnames=fields)
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({key: "" if value is None else value for key, value in row.items()})
 
 
 def save_model_atomically(model: Any, path: str | os.PathLike) -> None:

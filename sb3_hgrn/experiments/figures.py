@@ -35,7 +35,7 @@ from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from sb3_hgrn.common.files import atomic_write
+from sb3_hgrn.common.files import atomic_write, write_csv_atomically
 from sb3_hgrn.experiments.callbacks import TEAM_RETURNS_FILE
 from sb3_hgrn.experiments.config import (
     ConfigError,
@@ -49,11 +49,12 @@ from sb3_hgrn.experiments.runs import (
     MODEL_FILE,
     TENSORBOARD_DIR,
     evaluate_run,
+    figure_root,
     read_eval,
     write_json,
 )
 from sb3_hgrn.experiments.table1 import Job, check_budget_of_folder, plan_jobs, run_jobs, train_command
-from sb3_hgrn.presets import PRESETS, TABLE1
+from sb3_hgrn.presets import HGAT_TWINS, PRESETS, TABLE1
 
 FIGURES = {
     "ctc": "CTC learning curves: HGAT models against their homogeneous-attention twins",
@@ -69,8 +70,6 @@ FIGURE_ENVS = {
     "transfer": "surviving_v0",
     "p_alpha": "surviving_v0",
 }
-HGAT_TWINS = {"dgn": "hgn", "soft_dgrn": "soft_hgrn", "sac_dgrn": "sac_hgrn"}
-"""Homogeneous-attention preset -> its HGAT original (drawn dashed in the original's colour)."""
 
 DEFAULT_PRESETS = {
     "ctc": ("hgn", "dgn", "soft_hgrn", "soft_dgrn", "sac_hgrn", "sac_dgrn"),
@@ -90,7 +89,6 @@ PRINT = partial(print, flush=True)
 METHOD_COLORS = {"soft_hgrn": "C0", "sac_hgrn": "C3"}
 ABLATION_STYLES = {"": ("-", "o"), "G": ("--", "s"), "R": (":", "^"), "S": ("-.", "v")}
 BASELINE_COLORS = ("C1", "C2", "C4", "C5", "C6", "C7", "C8", "C9")
-TITLES = {**PRESET_TITLES, "hgn": "HGN", "soft_dgrn": "Soft-DGRN", "sac_dgrn": "SAC-DGRN"}
 MAP_NOTE = (
     "map, resource points and episode length kept as trained (the observation encodes coordinates "
     "in ceil(log2(map size)) bits, so a policy does not move to a map of another bit width); "
@@ -130,13 +128,6 @@ def check_presets(name: str, presets: Sequence[str]) -> None:
 def ratio_root(root: Path, ratio: float) -> Path:
     """Root of the ``p_alpha`` runs with target-entropy ratio ``ratio``."""
     return root / f"ratio_{ratio:g}"
-
-
-def figure_root(folder: str | os.PathLike, name: str) -> Path:
-    """Where figure ``name`` keeps its runs: ``<folder>/figures/<name>``, except the transfer figure,
-    whose runs are Table 1's Surviving runs (the same budget, presets and seeds) in ``<folder>/table1``,
-    so ``reproduce table1`` and ``figure transfer`` share them."""
-    return Path(folder) / "table1" if name == "transfer" else Path(folder) / "figures" / name
 
 
 def plan_figure(
@@ -352,12 +343,9 @@ def save_figure(figure: Figure, rows: list[dict[str, Any]], info: dict[str, Any]
     out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_write(out, "wb") as file:
         figure.savefig(file, format="png", dpi=110, bbox_inches="tight")
-    fields = list(dict.fromkeys(key for row in rows for key in row))
-    with atomic_write(out.with_suffix(".csv")) as file:
-        writer = csv.DictWriter(file, fieldnames=fields)
-        writer.writeheader()
-        for row in rows:
-            writer.writerow({key: _round(value) for key, value in row.items()})
+    write_csv_atomically(
+        out.with_suffix(".csv"), [{key: _round(value) for key, value in row.items()} for row in rows]
+    )
     write_json(out.with_suffix(".json"), {**info, "png": str(out), "csv": str(out.with_suffix(".csv"))})
 
 
@@ -440,7 +428,7 @@ def _plot_band(axis: Axes, rows: list[dict[str, Any]], label: str, **style: Any)
 
 
 def _seeds_label(preset: str, n_seeds: int) -> str:
-    return f"{TITLES.get(preset, preset)} ({n_seeds} seed{'s' if n_seeds > 1 else ''})"
+    return f"{PRESET_TITLES.get(preset, preset)} ({n_seeds} seed{'s' if n_seeds > 1 else ''})"
 
 
 def draw_ctc(done: Sequence[Job]) -> tuple[list[dict[str, Any]], Figure]:

@@ -13,6 +13,7 @@ PRESET_TITLES = {
     "soft_hgrn": "Soft-HGRN", "soft_hgrn-G": "Soft-HGRN -G", "soft_hgrn-R": "Soft-HGRN -R",
     "soft_hgrn-S": "Soft-HGRN -S", "sac_hgrn": "SAC-HGRN", "sac_hgrn-G": "SAC-HGRN -G",
     "sac_hgrn-R": "SAC-HGRN -R", "sac_hgrn-S": "SAC-HGRN -S", "random": "Random",
+    "hgn": "HGN", "soft_dgrn": "Soft-DGRN", "sac_dgrn": "SAC-DGRN",
 }  # fmt: skip
 
 PAPER_TABLE1: dict[str, dict[str, tuple[float, float]]] = {

@@ -66,6 +66,13 @@ def run_folder(root: str | os.PathLike, env: str, preset: str, seed: int) -> Pat
     return Path(root) / env / preset / f"seed_{seed}"
 
 
+def figure_root(folder: str | os.PathLike, name: str) -> Path:
+    """Where figure ``name`` keeps its runs: ``<folder>/figures/<name>``, except the transfer figure,
+    whose runs are Table 1's Surviving runs (the same budget, presets and seeds) in ``<folder>/table1``,
+    so ``reproduce table1`` and ``figure transfer`` share them."""
+    return Path(folder) / "table1" if name == "transfer" else Path(folder) / "figures" / name
+
+
 def read_eval(folder: str | os.PathLike) -> dict[str, Any] | None:
     """The run's ``eval.json`` if it is complete, else ``None``."""
     path = Path(folder) / EVAL_FILE

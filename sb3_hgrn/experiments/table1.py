@@ -4,12 +4,12 @@ Runs go to ``<folder>/table1/<env>/<preset>/seed_<seed>/`` (see :mod:`sb3_hgrn.e
 a run whose folder holds a complete ``eval.json`` is skipped, so a killed sweep resumes where it
 stopped. Each (env, seed) also gets a uniformly random policy evaluated the same way, without
 training (``<env>/random/seed_<seed>/``), as the tables' anchor row. After every finished run the
-tables ``<folder>/table1.csv`` and ``<folder>/table1.md`` are rewritten from the run folders.
+tables ``<folder>/table1.csv`` and ``<folder>/table1.md`` are rewritten from the run folders; when the
+sweep ends they get the robust statistics too (:mod:`sb3_hgrn.experiments.table1_stats`).
 """
 
 from __future__ import annotations
 
-import csv
 import os
 import subprocess
 import sys
@@ -21,7 +21,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from sb3_hgrn.common.files import atomic_write, write_text_atomically
+from sb3_hgrn.common.files import write_csv_atomically, write_text_atomically
 from sb3_hgrn.experiments.config import (
     RANDOM_POLICY,
     ConfigError,
@@ -42,6 +42,16 @@ from sb3_hgrn.experiments.paper import (
     TABLE1_ENVS,
 )
 from sb3_hgrn.experiments.runs import evaluate_random_policy, read_eval, run_folder
+from sb3_hgrn.experiments.stats import BOOTSTRAP_REPS, iqm_interval, rliable_modules
+from sb3_hgrn.experiments.table1_stats import (
+    RobustTables,
+    format_interval,
+    interval_columns,
+    markdown_sections,
+    robust_tables,
+    rounded,
+    write_robust_tables,
+)
 from sb3_hgrn.presets import TABLE1
 
 LOG_FILE = "train.log"
@@ -155,6 +165,7 @@ def run_sweep(
         check_preset_name(preset)
     if n_seeds < 1 or jobs < 1:
         raise ConfigError(f"--seeds and --jobs must be >= 1, got {n_seeds} and {jobs}.")
+    rliable_modules()  # the tables' statistics need it: fail before training, not after
     if threads is None and jobs > 1:
         threads = 1
     results, root = Path(folder), Path(folder) / "table1"
@@ -173,7 +184,7 @@ def run_sweep(
         jobs,
         threads,
         log,
-        on_finished=lambda: write_tables(results, budget, envs, presets, seeds),
+        on_finished=lambda: write_tables(results, budget, envs, presets, seeds, robust=False),
     )
     write_tables(results, budget, envs, presets, seeds)
     log(f"Wrote {results / 'table1.csv'} and {results / 'table1.md'}")
@@ -279,15 +290,25 @@ def _mean_std(values: list[float]) -> tuple[float | None, float | None]:
     return float(np.mean(values)), float(np.std(values)) if len(values) > 1 else None
 
 
+def _iqm_columns(values: list[float], reps: int | None) -> dict[str, float | None]:
+    """``iqm``, ``iqm_low``, ``iqm_high`` of one cell's seed scores (``None`` without scores or ``reps``)."""
+    interval = iqm_interval(np.array(values).reshape(-1, 1), reps) if values and reps else None
+    return interval_columns("iqm", interval)
+
+
 def collect_rows(
-    root: Path, envs: Sequence[str], presets: Sequence[str], seeds: Sequence[int]
+    root: Path, envs: Sequence[str], presets: Sequence[str], seeds: Sequence[int], reps: int | None = None
 ) -> list[dict[str, Any]]:
-    """One row per env x preset from the complete runs under ``root``."""
+    """One row per env x preset from the complete runs under ``root``.
+
+    :param reps: bootstrap resamples of the IQM intervals (``None``: the IQM columns are left empty).
+    """
     rows = []
     for env in envs:
         for preset in presets:
             evals = [e for e in (read_eval(run_folder(root, env, preset, seed)) for seed in seeds) if e]
-            mean, std = _mean_std([e["mean"] for e in evals])
+            scores = [e["mean"] for e in evals]
+            mean, std = _mean_std(scores)
             eps = [
                 e["epsilon_evaluations"][COMPARISON_EPSILON]["mean"]
                 for e in evals
@@ -299,6 +320,7 @@ def collect_rows(
                 {
                     "env": env,
                     "preset": preset,
+                    **_iqm_columns(scores, reps),
                     "mean": mean,
                     "std": std,
                     "seeds_done": len(evals),
@@ -319,22 +341,28 @@ def collect_rows(
 
 
 def write_tables(
-    results: Path, budget: str, envs: Sequence[str], presets: Sequence[str], seeds: Sequence[int]
+    results: Path,
+    budget: str,
+    envs: Sequence[str],
+    presets: Sequence[str],
+    seeds: Sequence[int],
+    robust: bool = True,
+    reps: int = BOOTSTRAP_REPS,
 ) -> list[dict[str, Any]]:
-    """Write ``table1.csv`` and ``table1.md`` into ``results`` from its run folders."""
+    """Write ``table1.csv`` and ``table1.md`` into ``results`` from its run folders.
+
+    :param robust: also the IQM intervals, the statistics across envs and the key comparisons
+        (:mod:`sb3_hgrn.experiments.table1_stats`, needs rliable); without, the IQM columns stay empty.
+    :param reps: bootstrap resamples per interval.
+    """
     results.mkdir(parents=True, exist_ok=True)
-    rows = collect_rows(results / "table1", envs, [*presets, RANDOM_POLICY], seeds)
-    with atomic_write(results / "table1.csv") as file:
-        writer = csv.DictWriter(file, fieldnames=list(rows[0]))
-        writer.writeheader()
-        for row in rows:
-            writer.writerow({key: "" if value is None else _round(value) for key, value in row.items()})
-    write_text_atomically(results / "table1.md", markdown(rows, budget, envs, presets, seeds))
+    rows = collect_rows(results / "table1", envs, [*presets, RANDOM_POLICY], seeds, reps if robust else None)
+    write_csv_atomically(results / "table1.csv", rounded(rows, 2))
+    tables = robust_tables(results, budget, envs, presets, seeds, reps) if robust else None
+    if tables is not None:
+        write_robust_tables(results, tables)
+    write_text_atomically(results / "table1.md", markdown(rows, budget, envs, presets, seeds, tables))
     return rows
-
-
-def _round(value: Any) -> Any:
-    return round(value, 2) if isinstance(value, float) else value
 
 
 def _number(value: float) -> str:
@@ -349,17 +377,26 @@ def _cell(mean: float | None, std: float | None) -> str:
 
 
 def markdown(
-    rows: list[dict[str, Any]], budget: str, envs: Sequence[str], presets: Sequence[str], seeds: Sequence[int]
+    rows: list[dict[str, Any]],
+    budget: str,
+    envs: Sequence[str],
+    presets: Sequence[str],
+    seeds: Sequence[int],
+    tables: RobustTables | None = None,
 ) -> str:
-    """Our Table 1 beside the paper's, with the budget, env sizes and evaluation protocol."""
+    """Our Table 1 beside the paper's, with the budget, env sizes and evaluation protocol, and the
+    robust statistics of ``tables`` (when given)."""
     by_key = {(row["env"], row["preset"]): row for row in rows}
     smaller = budget != "paper"
     lines = [
         f"# Table 1 reproduced with sb3_hgrn: budget `{budget}`",
         "",
-        "Team return (all agents' rewards summed over an episode). **ours**: mean +- std over seeds of each "
-        f"seed's mean evaluation return ({len(seeds)} seed(s) planned; a cell with fewer seeds done shows "
-        "`(done/planned)`, a single seed no spread). "
+        "Team return (all agents' rewards summed over an episode); a run's score is its mean evaluation "
+        "return. **IQM [95 % CI]**: interquartile mean of the runs' scores with its 95 % "
+        f"stratified-bootstrap confidence interval over runs (rliable, {BOOTSTRAP_REPS:,} resamples; with "
+        "fewer than 4 seeds nothing is trimmed, so it is the mean). **mean +- std**: over seeds of the "
+        f"runs' scores ({len(seeds)} seed(s) planned; a cell with fewer seeds done shows `(done/planned)`, "
+        "a single seed no spread). "
         f"**paper**: Table 1 of Ye et al. (AAAI 2022), mean +- std over {PAPER_SEEDS} runs of "
         f"{PAPER_EVAL_EPISODES:,} test episodes each. `-`: run missing.",
         "",
@@ -397,8 +434,8 @@ def markdown(
             f"| {ENV_TITLES.get(env, env)} | {description}; {copies} "
             f"| {agent_steps:,} | {env_steps} | {section['eval_episodes']} | {PAPER_SIZES.get(env, '-')} |"
         )
-    header = " | ".join(f"{ENV_TITLES.get(env, env)} ours | paper" for env in envs)
-    lines += ["", f"| Algorithm | {header} |", "|---|" + "---|---|" * len(envs)]
+    header = " | ".join(f"{ENV_TITLES.get(env, env)} IQM [95 % CI] | mean +- std | paper" for env in envs)
+    lines += ["", f"| Algorithm | {header} |", "|---|" + "---|---|---|" * len(envs)]
     for preset in [*presets, RANDOM_POLICY]:
         cells = []
         for env in envs:
@@ -407,8 +444,10 @@ def markdown(
             if row["seeds_done"] and row["seeds_done"] < len(seeds):
                 ours += f" ({row['seeds_done']}/{len(seeds)})"
             paper = "-" if row["paper_mean"] is None else f"{row['paper_mean']:.0f} +- {row['paper_std']:.0f}"
-            cells += [ours, paper]
+            cells += [format_interval(row["iqm"], row["iqm_low"], row["iqm_high"], _number), ours, paper]
         lines.append(f"| {PRESET_TITLES.get(preset, preset)} | " + " | ".join(cells) + " |")
+    if tables is None:
+        lines += ["", "The IQM intervals and the robust statistics are computed when the sweep ends."]
     lines += [
         "",
         f"With epsilon = {COMPARISON_EPSILON} random actions (ours only):",
@@ -421,6 +460,8 @@ def markdown(
             _cell(by_key[(env, preset)]["eps_0.3_mean"], by_key[(env, preset)]["eps_0.3_std"]) for env in envs
         ]
         lines.append(f"| {PRESET_TITLES.get(preset, preset)} | " + " | ".join(cells) + " |")
+    if tables is not None:
+        lines += markdown_sections(tables, envs, presets)
     wall = sum(row["wall_time_s"] or 0.0 for row in rows)
     lines += [
         "",
