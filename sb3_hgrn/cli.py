@@ -80,6 +80,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--save-freq", type=_positive_int, help="save a checkpoint every this many agent-steps"
     )
     train.add_argument(
+        "--save-replay-buffer",
+        action="store_true",
+        help="keep the replay buffer beside every checkpoint, so a resumed run continues with it",
+    )
+    train.add_argument(
         "--progress-bar", action="store_true", help="show a progress bar (needs tqdm and rich)"
     )
     train.add_argument("--verbose", type=int, default=1, help="0: quiet, 1: SB3's training logs")
@@ -214,6 +219,7 @@ def _train(args: argparse.Namespace) -> int:
         device=args.device,
         log_interval=args.log_interval,
         overwrite=args.overwrite,
+        save_replay_buffer=args.save_replay_buffer,
     )
     print(
         f"{config.preset} on {config.env} (budget {config.budget}, seed {config.seed}): team return "

@@ -2,6 +2,7 @@
 atomic writes, damaged checkpoints skipped, a real ``sb3-hgrn train`` killed with SIGKILL, and one
 process per run folder; algorithm arguments checked at construction."""
 
+import copy
 import io
 import json
 import os
@@ -13,8 +14,10 @@ import time
 import zipfile
 from pathlib import Path
 
+import numpy as np
 import pytest
 from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.save_util import load_from_pkl, save_to_pkl
 
 from sb3_hgrn import SACHGRN, SoftHGRN, make_graph_vec_env
 from sb3_hgrn.cli import main
@@ -368,3 +371,69 @@ def test_load_of_the_other_algorithm_says_which_class_to_use(finished_root, smal
     ):
         SACHGRN.load(soft)
     assert isinstance(SACHGRN.load(sac), SACHGRN) and isinstance(SoftHGRN.load(soft), SoftHGRN)
+
+
+BUFFER_ARRAYS = ("observations", "next_observations", "neighbors", "actions", "rewards", "hidden",
+                 "episode_starts")  # fmt: skip
+
+
+def assert_same_rows(buffer, other, rows: int) -> None:
+    """The first ``rows`` steps of two replay buffers hold the same transitions."""
+    for name in BUFFER_ARRAYS:
+        assert (getattr(buffer, name)[:rows] == getattr(other, name)[:rows]).all(), name
+
+
+def test_replay_buffer_round_trip_across_a_load(small_env, tmp_path):
+    model = SoftHGRN("GraphPolicy", small_env, batch_size=4, seed=0)
+    model.learn(150)
+    model.save(tmp_path / "model.zip")
+    model.save_replay_buffer(tmp_path / "buffer.pkl")
+    loaded = SoftHGRN.load(tmp_path / "model.zip", env=small_env)
+    loaded.load_replay_buffer(tmp_path / "buffer.pkl")
+    buffer, original = loaded.replay_buffer, model.replay_buffer
+    assert (buffer.pos, buffer.full) == (original.pos, original.full) and buffer.pos > 0
+    assert_same_rows(buffer, original, buffer.buffer_size)
+    np.random.seed(0)
+    first = original.sample(8)
+    np.random.seed(0)
+    assert all((a == b).all() for a, b in zip(first[:-1], buffer.sample(8)[:-1], strict=True))
+
+
+def test_load_replay_buffer_of_another_agent_count_says_what_differs(small_env, tmp_path):
+    model = SoftHGRN("GraphPolicy", small_env, batch_size=4)
+    model.save_replay_buffer(tmp_path / "buffer.pkl")
+    other = make_graph_vec_env("surviving_v0", env_kwargs={"n_agents": 6, "map_size": 10})
+    with pytest.raises(ValueError, match=r"does not fit this model: slots 5 \(model 6\), agents per copy 5"):
+        SoftHGRN("GraphPolicy", other, batch_size=4).load_replay_buffer(tmp_path / "buffer.pkl")
+    with pytest.raises(TypeError, match="holds a dict, not a GraphReplayBuffer"):
+        save_to_pkl(tmp_path / "dict.pkl", {})
+        model.load_replay_buffer(tmp_path / "dict.pkl")
+
+
+def test_a_run_resumed_with_its_replay_buffer_continues_it(tmp_path):
+    """An uninterrupted run's buffer at 100 agent-steps is the start of a run resumed from there."""
+    assert main(train_args(tmp_path, 200, "--save-replay-buffer")) == 0
+    checkpoints = run_of(tmp_path) / "checkpoints"
+    assert sorted(path.name for path in checkpoints.glob("*.pkl")) == [
+        "model_replay_buffer_100_steps.pkl", "model_replay_buffer_200_steps.pkl"
+    ]  # fmt: skip
+    at_100, at_200 = (load_from_pkl(checkpoints / f"model_replay_buffer_{n}_steps.pkl") for n in (100, 200))
+    assert (at_100.pos, at_200.pos) == (19, 39)  # a checkpoint's own vec-step is stored after it
+    assert_same_rows(at_100, at_200, 19)
+    as_killed(run_of(tmp_path))
+    (checkpoints / "model_200_steps.zip").unlink()
+    captured = {}
+
+    def record_buffer(self, *args, **kwargs):
+        captured["buffer"] = copy.deepcopy(self.replay_buffer)
+        return learn(self, *args, **kwargs)
+
+    learn = GraphOffPolicyAlgorithm.learn
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(GraphOffPolicyAlgorithm, "learn", record_buffer)
+        assert main(train_args(tmp_path, 200, "--save-replay-buffer")) == 0
+    assert captured["buffer"].pos == 19
+    assert_same_rows(captured["buffer"], at_100, captured["buffer"].buffer_size)
+    resumed = load_from_pkl(checkpoints / "model_replay_buffer_200_steps.pkl")
+    assert resumed.pos == 19 + 19
+    assert_same_rows(resumed, at_200, 19)

@@ -12,7 +12,7 @@ import json
 import os
 import zipfile
 import zlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO, Any
 
@@ -50,10 +50,15 @@ def write_text_atomically(path: str | os.PathLike, text: str) -> None:
         file.write(text)
 
 
+def save_atomically(save: Callable[[IO[bytes]], Any], path: str | os.PathLike) -> None:
+    """``save(file)`` into a binary file opened with :func:`atomic_write` for ``path``."""
+    with atomic_write(path, "wb") as file:
+        save(file)
+
+
 def save_model_atomically(model: Any, path: str | os.PathLike) -> None:
     """``model.save(path)`` (an SB3 model) through :func:`atomic_write`."""
-    with atomic_write(path, "wb") as file:
-        model.save(file)
+    save_atomically(model.save, path)
 
 
 def model_file_path(path: str | os.PathLike) -> Path:

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import io
 import os
+import pathlib
 import sys
 import time
 from collections import deque
@@ -13,6 +15,7 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.save_util import load_from_pkl
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, RolloutReturn, Schedule, TrainFreq
 from stable_baselines3.common.utils import (
     LinearSchedule,
@@ -354,6 +357,36 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
                     f"{path} holds a {other.__name__} model, not a {cls.__name__} one: load it with "
                     f"{other.__name__}.load."
                 )
+
+    def load_replay_buffer(
+        self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True
+    ) -> None:
+        """Load a :class:`GraphReplayBuffer` written by ``save_replay_buffer`` (also by another
+        instance of this model, e.g. before a ``load``).
+
+        The buffer must have been filled on the model's slot layout (``n_envs`` slots of
+        ``n_agents``-agent copies) with its observation shape and recurrent-state width; anything
+        else raises a ``ValueError`` saying what differs. ``truncate_last_traj`` is SB3's
+        ``HerReplayBuffer`` option and has no effect here.
+        """
+        buffer = load_from_pkl(path, self.verbose)
+        if not isinstance(buffer, GraphReplayBuffer):
+            raise TypeError(f"{path} holds a {type(buffer).__name__}, not a GraphReplayBuffer.")
+        layout = {
+            "slots": (buffer.n_envs, self.n_envs),
+            "agents per copy": (buffer.n_agents, self.n_agents),
+            "observation shape": (buffer.observations.shape[3:], self.observation_space["obs"].shape),
+            "recurrent-state width": (buffer.hidden.shape[-1], self.policy.state_dim),
+        }
+        differences = [
+            f"{name} {saved} (model {own})" for name, (saved, own) in layout.items() if saved != own
+        ]
+        if differences:
+            raise ValueError(
+                f"The replay buffer in {path} does not fit this model: {', '.join(differences)}."
+            )
+        buffer.device = self.device
+        self.replay_buffer = buffer
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return ["policy", *self._optimizer_names(), "temperature.optimizer"], []

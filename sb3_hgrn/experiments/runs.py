@@ -6,7 +6,8 @@ A run folder (``<root>/<env>/<preset>/seed_<seed>/``) holds::
                         budget, seed, versions)
     tensorboard/        SB3's TensorBoard logs (when tensorboard is installed)
     team_returns.csv    one "r,l,t" row per training team episode, after a "#{json}" line (as SB3's Monitor)
-    checkpoints/        model_<agent-steps>_steps.zip every --save-freq agent-steps (optional)
+    checkpoints/        model_<agent-steps>_steps.zip every --save-freq agent-steps (optional), with
+                        --save-replay-buffer also model_replay_buffer_<agent-steps>_steps.pkl
     model.zip           the final model
     eval.json           the final evaluation; its presence marks the run as complete
     .lock, .lock.pid    the lock of the process working in the folder, and its pid
@@ -20,6 +21,7 @@ from __future__ import annotations
 import itertools
 import json
 import os
+import pickle
 import re
 import shutil
 import sys
@@ -46,6 +48,7 @@ from sb3_hgrn.experiments.callbacks import (
     TEAM_RETURNS_FILE,
     AtomicCheckpointCallback,
     TeamMonitorCallback,
+    replay_buffer_path,
     rewind_team_returns,
 )
 from sb3_hgrn.experiments.config import ConfigError, RunConfig
@@ -270,17 +273,20 @@ def train_run(
     device: str = "auto",
     log_interval: int = 10,
     overwrite: bool = False,
+    save_replay_buffer: bool = False,
 ) -> dict[str, Any]:
     """Train ``config`` into ``folder``, save ``model.zip``, evaluate and write ``eval.json``.
 
     The env and the model are built first, so bad arguments fail before the folder is touched. Then
     :func:`prepare_run_folder` decides: a killed run of the same configuration resumes from its latest
-    checkpoint with an empty replay buffer (``team_returns.csv`` rewound to the checkpoint), a
+    checkpoint (``team_returns.csv`` rewound to the checkpoint) with the replay buffer saved beside it,
+    if any, else with an empty one; a
     complete run or one of another configuration is refused unless ``overwrite``, which moves the old
     run aside and removes it once the new run has written its ``eval.json``.
 
     :param save_freq: save a checkpoint every this many agent-steps (``None``: no checkpoints).
     :param log_interval: team episodes between log dumps.
+    :param save_replay_buffer: save the replay buffer beside every checkpoint.
     :return: the contents of ``eval.json``.
     """
     folder = Path(folder)
@@ -297,15 +303,26 @@ def train_run(
                 checkpoint, env=env, device=device, tensorboard_log=tensorboard_log, verbose=verbose
             )
             rewind_team_returns(folder / TEAM_RETURNS_FILE, model.num_timesteps)
+            replay = _load_replay_buffer(model, replay_buffer_path(checkpoint))
             if verbose:
-                print(f"Resuming from {checkpoint} ({model.num_timesteps} agent-steps done)")
+                print(
+                    f"Resuming from {checkpoint} ({model.num_timesteps} agent-steps done, "
+                    f"{'its' if replay else 'an empty'} replay buffer)"
+                )
         config.extra = _run_figures(config, env, model)
         write_text_atomically(folder / CONFIG_FILE, yaml.safe_dump(config.to_dict(), sort_keys=False))
 
         remaining = max(0, config.total_timesteps - model.num_timesteps)
         model.learn(
             remaining,
-            callback=_callbacks(folder, config, env, save_freq, resumed=checkpoint is not None),
+            callback=_callbacks(
+                folder,
+                config,
+                env,
+                save_freq,
+                resumed=checkpoint is not None,
+                save_replay_buffer=save_replay_buffer,
+            ),
             log_interval=log_interval,
             progress_bar=progress_bar,
             reset_num_timesteps=checkpoint is None,
@@ -335,18 +352,40 @@ def train_run(
     return results
 
 
+def _load_replay_buffer(model: GraphOffPolicyAlgorithm, path: Path) -> bool:
+    """Load the replay buffer at ``path`` into ``model``; whether it was there and whole (a damaged
+    one is skipped with a warning, leaving the model's empty buffer)."""
+    if not path.is_file():
+        return False
+    try:
+        model.load_replay_buffer(path)
+    except (pickle.UnpicklingError, EOFError, AttributeError, TypeError, ValueError) as error:
+        warnings.warn(f"Skipping the damaged replay buffer {path}: {error}", stacklevel=2)
+        return False
+    return True
+
+
 def _callbacks(
-    folder: Path, config: RunConfig, env: GraphVecEnv, save_freq: int | None, resumed: bool
+    folder: Path,
+    config: RunConfig,
+    env: GraphVecEnv,
+    save_freq: int | None,
+    resumed: bool,
+    save_replay_buffer: bool,
 ) -> list[BaseCallback]:
     """The training callbacks of a run: ``team_returns.csv`` (continued when ``resumed``) and, with
-    ``save_freq``, atomic checkpoints every ``save_freq`` agent-steps."""
+    ``save_freq``, atomic checkpoints every ``save_freq`` agent-steps (with the replay buffer when
+    ``save_replay_buffer``)."""
     callbacks: list[BaseCallback] = [
         TeamMonitorCallback(str(folder / TEAM_RETURNS_FILE), env_id=config.env, append=resumed)
     ]
     if save_freq:
         callbacks.append(
             AtomicCheckpointCallback(
-                max(1, save_freq // env.num_envs), str(folder / CHECKPOINT_DIR), name_prefix="model"
+                max(1, save_freq // env.num_envs),
+                str(folder / CHECKPOINT_DIR),
+                name_prefix="model",
+                save_replay_buffer=save_replay_buffer,
             )
         )
     return callbacks
