@@ -14,18 +14,23 @@ import time
 import zipfile
 from pathlib import Path
 
+import gymnasium
 import numpy as np
 import pytest
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.save_util import load_from_pkl, save_to_pkl
 
-from sb3_hgrn import SACHGRN, SoftHGRN, make_graph_vec_env
+from sb3_hgrn import SACHGRN, SoftHGRN, evaluate_graph_policy, make_graph_vec_env
 from sb3_hgrn.cli import main
+from sb3_hgrn.common.checks import observation_problem
+from sb3_hgrn.common.evaluation import RandomGraphPolicy
 from sb3_hgrn.common.files import DamagedModelFileError, save_model_atomically
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
 from sb3_hgrn.experiments.callbacks import rewind_team_returns
 from sb3_hgrn.experiments.lock import PID_FILE, RunLock
 from sb3_hgrn.experiments.table1 import LOG_FILE, Job, run_jobs
+from sb3_hgrn.sac_hgrn.policies import SACHGRNPolicy
+from tests.toy_envs import DictOnlyEnv
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -437,3 +442,132 @@ def test_a_run_resumed_with_its_replay_buffer_continues_it(tmp_path):
     resumed = load_from_pkl(checkpoints / "model_replay_buffer_200_steps.pkl")
     assert resumed.pos == 19 + 19
     assert_same_rows(resumed, at_200, 19)
+
+
+class BadValueEnv(DictOnlyEnv):
+    """:class:`DictOnlyEnv` (3 agents, observations in ``[-1, 1]``) where agent 1 observes ``value``
+    from step 3 on, or whose neighbour indices are offset by ``neighbor_offset``."""
+
+    def __init__(self, value: float = 0.5, neighbor_offset: float = 0):
+        super().__init__(max_cycles=5)
+        self.value, self.neighbor_offset = value, neighbor_offset
+
+    def step(self, actions):
+        observations, *rest = super().step(actions)
+        if self._t >= 3:
+            observations["a1"][0] = self.value
+        return (observations, *rest)
+
+    def neighbors(self):
+        return super().neighbors() + self.neighbor_offset
+
+
+BAD_OBSERVATIONS = [
+    (float("nan"), r"the non-finite value nan at obs index 0"),
+    (float("inf"), r"the non-finite value inf at obs index 0"),
+    (1e6, r"the value 1000000.0 at obs index 0, outside the observation space \[-1.0, 1.0\]"),
+]
+
+
+@pytest.mark.parametrize("value, problem", BAD_OBSERVATIONS)
+@pytest.mark.parametrize("algorithm", [SoftHGRN, SACHGRN])
+def test_a_bad_observation_while_learning_names_the_agent_and_step(algorithm, value, problem):
+    env = make_graph_vec_env(lambda: BadValueEnv(value), n_envs=2)
+    model = algorithm("GraphPolicy", env, batch_size=4, learning_starts=0)
+    with pytest.raises(ValueError, match=f"{problem} for agent 1 of env copy 0 \\(slot 1\\) at step 3 of"):
+        model.learn(60)
+
+
+def test_float_neighbour_indices_are_refused():
+    with pytest.raises(
+        ValueError, match=r"the neighbour index 0.5, not a whole number for agent 0 .* step 0"
+    ):
+        make_graph_vec_env(lambda: BadValueEnv(neighbor_offset=0.5)).reset()
+    env = make_graph_vec_env(lambda: BadValueEnv(neighbor_offset=0.0))  # whole numbers as floats pass
+    assert env.reset()["neighbors"].dtype == np.int32
+
+
+@pytest.fixture(scope="module")
+def predicting():
+    """A model on 2 copies of :class:`DictOnlyEnv` and a first observation of its env."""
+    env = make_graph_vec_env(DictOnlyEnv, n_envs=2)
+    return SoftHGRN("GraphPolicy", env, batch_size=4, policy_kwargs={"hidden_dim": 16}), env.reset()
+
+
+@pytest.mark.parametrize("value, problem", BAD_OBSERVATIONS)
+@pytest.mark.parametrize("deterministic", [False, True])
+def test_a_bad_observation_in_predict_names_the_agent(predicting, value, problem, deterministic):
+    model, observation = predicting
+    observation = {key: array.copy() for key, array in observation.items()}
+    observation["obs"][4, 0] = value
+    with pytest.raises(
+        ValueError, match=f"predict\\(\\) got {problem} for agent 1 of env copy 1 \\(slot 4\\)"
+    ):
+        model.predict(observation, deterministic=deterministic)
+
+
+def test_float_neighbour_indices_in_predict_are_refused(predicting):
+    model, observation = predicting
+    neighbors = observation["neighbors"] + 0.5
+    with pytest.raises(
+        ValueError, match="the neighbour index 0.5, not a whole number for agent 0 of env copy 0"
+    ):
+        model.predict({**observation, "neighbors": neighbors})
+    with pytest.raises(ValueError, match=r"the neighbour index 3, not one of the agent indices in \[-1, 2\]"):
+        model.predict({**observation, "neighbors": observation["neighbors"] + 1})
+
+
+def test_evaluate_on_nan_rewards_raises_naming_the_agent_and_step():
+    env = make_graph_vec_env(lambda: DictOnlyEnv(reward=float("nan")))
+    with pytest.raises(
+        ValueError, match=r"non-finite rewards: nan for agent 0 of env copy 0 \(slot 0\) at step 1 "
+    ):
+        evaluate_graph_policy(RandomGraphPolicy(env, seed=0), env, n_eval_episodes=1)
+
+
+@pytest.mark.parametrize(
+    "policy, error, message",
+    [
+        (
+            None,
+            TypeError,
+            "policy must be one of the names 'GraphPolicy' or a subclass of SoftHGRNPolicy, got None",
+        ),
+        (3, TypeError, "policy must be one of the names 'GraphPolicy' .* got 3"),
+        (dict, TypeError, "got <class 'dict'>"),
+        (SACHGRNPolicy, TypeError, "a subclass of SoftHGRNPolicy"),
+        (
+            "MlpPolicy",
+            ValueError,
+            "Unknown policy 'MlpPolicy': policy must be one of the names 'GraphPolicy'",
+        ),
+    ],
+)
+def test_a_value_that_is_no_policy_names_the_accepted_ones(small_env, policy, error, message):
+    with pytest.raises(error, match=message):
+        SoftHGRN(policy, small_env, batch_size=4)
+
+
+def test_predict_states_the_expected_shapes_of_state_and_episode_start(predicting):
+    model, observation = predicting
+    _, state = model.predict(observation)
+    assert state[0].shape == (1, 6, 16)
+    with pytest.raises(
+        ValueError, match=r"state must be the tuple \(hidden,\) .* got an array of shape \(1, 6, 16\)"
+    ):
+        model.predict(observation, state=state[0])
+    with pytest.raises(ValueError, match=r"state\[0\] has shape \(1, 3, 16\), expected \(1, 6, 16\)"):
+        model.predict(observation, state=(state[0][:, :3],))
+    with pytest.raises(
+        ValueError, match=r"episode_start has shape \(4,\), expected \(6,\): one flag per slot"
+    ):
+        model.predict(observation, state=state, episode_start=np.ones(4, dtype=bool))
+    actions, _ = model.predict(observation, state=state, episode_start=np.zeros(6, dtype=bool))
+    assert actions.shape == (6,)
+
+
+def test_infinite_observations_are_refused_in_an_unbounded_space():
+    space = gymnasium.spaces.Box(-np.inf, np.inf, shape=(2,), dtype=np.float32)
+    observations = {"obs": np.array([[0.0, 1.0], [0.0, -np.inf]]), "neighbors": np.array([[0], [1]])}
+    assert observation_problem(observations, space, 2) == (1, "the non-finite value -inf at obs index 1")
+    assert observation_problem({**observations, "obs": np.zeros((2, 2))}, space, 2) is None

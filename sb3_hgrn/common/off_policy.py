@@ -26,6 +26,7 @@ from stable_baselines3.common.utils import (
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_hgrn.common.buffers import GraphReplayBuffer
+from sb3_hgrn.common.checks import check_rewards
 from sb3_hgrn.common.files import check_model_file, saved_policy_module
 from sb3_hgrn.common.policies import GraphPolicy, check_graph_spaces
 from sb3_hgrn.common.temperature import TemperatureController, group_means, target_entropy
@@ -470,11 +471,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
             hidden_in = self._last_hidden * (1.0 - self._last_episode_starts)[:, None]
             actions, next_hidden = self._choose_actions(hidden_in.astype(np.float32), learning_starts)
             new_obs, rewards, dones, infos = env.step(actions)
-            if not np.all(np.isfinite(rewards)):
-                bad = np.flatnonzero(~np.isfinite(rewards))
-                raise ValueError(
-                    f"The env returned non-finite rewards {rewards[bad][:5]} at slots {bad[:5]}."
-                )
+            check_rewards(rewards, self.n_agents, f"at agent-step {self.num_timesteps + env.num_envs}")
             self.num_timesteps += env.num_envs
             n_steps += 1
             callback.update_locals(locals())
