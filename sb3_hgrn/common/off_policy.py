@@ -101,6 +101,22 @@ def check_algorithm_arguments(
         )
 
 
+def check_policy(policy: Any, aliases: dict[str, type]) -> None:
+    """Raise an error naming the accepted values unless ``policy`` is a name in ``aliases`` (an
+    algorithm's ``policy_aliases``) or a subclass of one of their classes (``TypeError`` for other
+    kinds of values, ``ValueError`` for an unknown name)."""
+    classes = tuple(aliases.values())
+    accepted = (
+        f"one of the names {', '.join(map(repr, aliases))} or a subclass of "
+        f"{' or '.join(cls.__name__ for cls in classes)}"
+    )
+    if isinstance(policy, str):
+        if policy not in aliases:
+            raise ValueError(f"Unknown policy {policy!r}: policy must be {accepted}.")
+    elif not (isinstance(policy, type) and issubclass(policy, classes)):
+        raise TypeError(f"policy must be {accepted}, got {policy!r}.")
+
+
 def _policy_modules(algorithm: type) -> set[str]:
     """Modules of the policy classes an algorithm names in its ``policy_aliases``."""
     return {policy.__module__ for policy in getattr(algorithm, "policy_aliases", {}).values()}
@@ -180,6 +196,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         seed: int | None,
         device: th.device | str,
     ):
+        check_policy(policy, self.policy_aliases)
         if env is not None:
             env = check_graph_env(env)
         check_algorithm_arguments(
