@@ -17,6 +17,7 @@ from pathlib import Path
 import gymnasium
 import numpy as np
 import pytest
+import yaml
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.save_util import load_from_pkl, save_to_pkl
 
@@ -26,8 +27,11 @@ from sb3_hgrn.common.checks import observation_problem
 from sb3_hgrn.common.evaluation import RandomGraphPolicy
 from sb3_hgrn.common.files import DamagedModelFileError, save_model_atomically
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
+from sb3_hgrn.envs import pursuit_v0
 from sb3_hgrn.experiments.callbacks import rewind_team_returns
+from sb3_hgrn.experiments.config import RunConfig
 from sb3_hgrn.experiments.lock import PID_FILE, RunLock
+from sb3_hgrn.experiments.runs import check_stored_model_paths
 from sb3_hgrn.experiments.table1 import LOG_FILE, Job, run_jobs
 from sb3_hgrn.sac_hgrn.policies import SACHGRNPolicy
 from tests.toy_envs import DictOnlyEnv
@@ -571,3 +575,37 @@ def test_infinite_observations_are_refused_in_an_unbounded_space():
     observations = {"obs": np.array([[0.0, 1.0], [0.0, -np.inf]]), "neighbors": np.array([[0], [1]])}
     assert observation_problem(observations, space, 2) == (1, "the non-finite value -inf at obs index 1")
     assert observation_problem({**observations, "obs": np.zeros((2, 2))}, space, 2) is None
+
+
+def point_at_controller(folder: Path, controller: str) -> None:
+    """Make the run in ``folder`` a Pursuit run whose ``config.yml`` sets ``prey_controller``."""
+    data = yaml.safe_load((folder / "config.yml").read_text())
+    data.update(env="pursuit_v0", env_kwargs={"learners": "predator", "prey_controller": controller})
+    (folder / "config.yml").write_text(yaml.safe_dump(data))
+
+
+def test_evaluate_refuses_a_controller_a_config_points_outside_the_run(root, tmp_path, monkeypatch, capsys):
+    folder = run_of(root)
+    outside = tmp_path / "elsewhere" / "prey.zip"
+    point_at_controller(folder, str(outside))
+    loads = []
+    monkeypatch.setattr(pursuit_v0, "load_controller", lambda *args: loads.append(args))
+    error = fails_with(["evaluate", str(folder), "--episodes", "1"], capsys)
+    assert f"sets prey_controller='{outside}', a model outside the run folder" in error
+    assert (
+        "can run code" in error and "--trust-config" in error and "--env-param prey_controller=PATH" in error
+    )
+    assert loads == []
+
+
+@pytest.mark.parametrize(
+    "controller, given, trusted",
+    [("evader", (), False), ("INSIDE", (), False), ("OUTSIDE", ("prey_controller",), False),
+     ("OUTSIDE", (), True)],
+)  # fmt: skip
+def test_controllers_inside_the_run_given_or_trusted_pass(root, tmp_path, controller, given, trusted):
+    folder = run_of(root)
+    path = {"INSIDE": str(folder / "checkpoints" / "model_100_steps"), "OUTSIDE": str(tmp_path / "x.zip")}
+    point_at_controller(folder, path.get(controller, controller))
+    config = RunConfig.from_dict(yaml.safe_load((folder / "config.yml").read_text()))
+    check_stored_model_paths(config, folder, given, trusted)

@@ -18,6 +18,7 @@ moves an old run to ``<folder>.replaced-<UTC time>/`` until the new run has fini
 
 from __future__ import annotations
 
+import importlib
 import itertools
 import json
 import os
@@ -27,6 +28,7 @@ import shutil
 import sys
 import time
 import warnings
+from collections.abc import Collection
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +40,7 @@ from sb3_hgrn.common.evaluation import RandomGraphPolicy, evaluate_graph_policy
 from sb3_hgrn.common.files import (
     DamagedModelFileError,
     check_model_file,
+    model_file_path,
     save_model_atomically,
     saved_policy_module,
     write_text_atomically,
@@ -581,8 +584,9 @@ def algorithm_of_zip(path: Path) -> type[GraphOffPolicyAlgorithm]:
     raise ConfigError(f"{path} was not saved by an sb3_hgrn algorithm (policy module {module!r}).")
 
 
-def locate_run(path: str | os.PathLike, env: str | None = None) -> tuple[Path, RunConfig]:
-    """The model file and run configuration of ``path`` (a run folder, its ``model.zip`` or a checkpoint).
+def locate_run(path: str | os.PathLike, env: str | None = None) -> tuple[Path, RunConfig, Path | None]:
+    """The model file, run configuration and run folder (the one holding ``config.yml``, ``None``
+    without one) of ``path`` (a run folder, its ``model.zip`` or a checkpoint).
 
     A run folder gives its ``model.zip``, else its latest checkpoint; damaged ones are skipped with a
     warning. A damaged file given by name raises :class:`ConfigError` ("damaged model file"). A bare
@@ -612,13 +616,38 @@ def locate_run(path: str | os.PathLike, env: str | None = None) -> tuple[Path, R
             config = RunConfig.from_dict(data)
             if env is not None and env != config.env:
                 raise ConfigError(f"{path} was trained on {config.env}, not {env}.")
-            return model_path, config
+            return model_path, config, folder
     if env is None:
         raise ConfigError(f"No {CONFIG_FILE} beside {path}: pass --env to say which env it runs on.")
     from sb3_hgrn.experiments.config import check_env_name
 
     check_env_name(env)
-    return model_path, RunConfig(env, "", "", 0, {}, 1, 1, 0, 10, [], False, {})
+    return model_path, RunConfig(env, "", "", 0, {}, 1, 1, 0, 10, [], False, {}), None
+
+
+def check_stored_model_paths(
+    config: RunConfig, folder: Path, given: Collection[str] = (), trust_config: bool = False
+) -> None:
+    """Raise :class:`ConfigError` when the ``config.yml`` of the run in ``folder`` makes its env load
+    a saved model (e.g. a Pursuit controller) from outside the folder.
+
+    Loading a model zip unpickles it and so can run code: a run's ``config.yml`` may only point to
+    models inside its own folder, unless ``trust_config``. Env arguments in ``given`` (passed by the
+    user, over the stored ones) are not checked. Which env arguments name models the env module says
+    with ``model_paths(env_kwargs) -> {argument: path}``.
+    """
+    model_paths = getattr(importlib.import_module(f"sb3_hgrn.envs.{config.env}"), "model_paths", None)
+    if trust_config or model_paths is None:
+        return
+    inside = folder.resolve()
+    for name, value in model_paths(config.env_kwargs).items():
+        if name not in given and not model_file_path(value).resolve().is_relative_to(inside):
+            raise ConfigError(
+                f"{folder / CONFIG_FILE} sets {name}={value!r}, a model outside the run folder. Loading a "
+                "model file can run code, so a run's config may only name models inside its own folder. "
+                f"If you trust this config, pass --trust-config (trust_config=True), or give the model "
+                f"yourself with --env-param {name}=PATH."
+            )
 
 
 def load_run(
@@ -627,10 +656,17 @@ def load_run(
     n_envs: int | None = None,
     seed: int | None = None,
     device: str = "auto",
+    trust_config: bool = False,
     **env_kwargs: Any,
 ) -> tuple[GraphOffPolicyAlgorithm, GraphVecEnv, RunConfig]:
-    """Load a saved run's model onto a fresh copy of its env (``env_kwargs`` over the run's)."""
-    model_path, config = locate_run(path, env)
+    """Load a saved run's model onto a fresh copy of its env (``env_kwargs`` over the run's).
+
+    Models the run's ``config.yml`` names for its env are loaded only from inside the run folder
+    unless ``trust_config`` (see :func:`check_stored_model_paths`).
+    """
+    model_path, config, folder = locate_run(path, env)
+    if folder is not None:
+        check_stored_model_paths(config, folder, env_kwargs, trust_config)
     algorithm = PRESETS[config.preset][0] if config.preset in PRESETS else algorithm_of_zip(model_path)
     vec_env = make_env(
         config,
@@ -649,10 +685,13 @@ def evaluate_run(
     env: str | None = None,
     n_envs: int | None = None,
     seed: int | None = None,
+    trust_config: bool = False,
     **env_kwargs: Any,
 ) -> dict[str, Any]:
     """Evaluate a saved run (see :func:`load_run`); ``epsilon`` mixes in random valid actions."""
-    model, vec_env, _ = load_run(path, env=env, n_envs=n_envs, seed=seed, device="cpu", **env_kwargs)
+    model, vec_env, _ = load_run(
+        path, env=env, n_envs=n_envs, seed=seed, device="cpu", trust_config=trust_config, **env_kwargs
+    )
     policy = EpsilonRandomPolicy(model, epsilon, seed=seed) if epsilon > 0 else model
     try:
         return evaluate_model(policy, vec_env, n_episodes, deterministic)
@@ -668,17 +707,26 @@ def render_run(
     deterministic: bool = False,
     env: str | None = None,
     seed: int | None = None,
+    trust_config: bool = False,
     **env_kwargs: Any,
 ) -> int:
     """Run one episode of copy 0 with ``render_mode="rgb_array"`` and write the frames as a GIF.
 
     :param steps: stop after this many steps (default: the whole episode).
+    :param trust_config: see :func:`load_run`.
     :return: the number of frames written.
     """
     from PIL import Image
 
     model, vec_env, _ = load_run(
-        path, env=env, n_envs=1, seed=seed, device="cpu", render_mode="rgb_array", **env_kwargs
+        path,
+        env=env,
+        n_envs=1,
+        seed=seed,
+        device="cpu",
+        render_mode="rgb_array",
+        trust_config=trust_config,
+        **env_kwargs,
     )
     try:
         observations = vec_env.reset()
