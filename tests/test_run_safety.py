@@ -34,7 +34,7 @@ from sb3_hgrn.experiments.lock import PID_FILE, RunLock
 from sb3_hgrn.experiments.runs import check_stored_model_paths
 from sb3_hgrn.experiments.table1 import LOG_FILE, Job, run_jobs
 from sb3_hgrn.sac_hgrn.policies import SACHGRNPolicy
-from tests.toy_envs import DictOnlyEnv
+from tests.toy_envs import BadValueEnv, DictOnlyEnv
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -448,24 +448,6 @@ def test_a_run_resumed_with_its_replay_buffer_continues_it(tmp_path):
     assert_same_rows(resumed, at_200, 19)
 
 
-class BadValueEnv(DictOnlyEnv):
-    """:class:`DictOnlyEnv` (3 agents, observations in ``[-1, 1]``) where agent 1 observes ``value``
-    from step 3 on, or whose neighbour indices are offset by ``neighbor_offset``."""
-
-    def __init__(self, value: float = 0.5, neighbor_offset: float = 0):
-        super().__init__(max_cycles=5)
-        self.value, self.neighbor_offset = value, neighbor_offset
-
-    def step(self, actions):
-        observations, *rest = super().step(actions)
-        if self._t >= 3:
-            observations["a1"][0] = self.value
-        return (observations, *rest)
-
-    def neighbors(self):
-        return super().neighbors() + self.neighbor_offset
-
-
 BAD_OBSERVATIONS = [
     (float("nan"), r"the non-finite value nan at obs index 0"),
     (float("inf"), r"the non-finite value inf at obs index 0"),
@@ -486,8 +468,8 @@ def test_float_neighbour_indices_are_refused():
     with pytest.raises(
         ValueError, match=r"the neighbour index 0.5, not a whole number for agent 0 .* step 0"
     ):
-        make_graph_vec_env(lambda: BadValueEnv(neighbor_offset=0.5)).reset()
-    env = make_graph_vec_env(lambda: BadValueEnv(neighbor_offset=0.0))  # whole numbers as floats pass
+        make_graph_vec_env(lambda: BadValueEnv(offset=0.5)).reset()
+    env = make_graph_vec_env(lambda: BadValueEnv(offset=0.0))  # whole numbers as floats pass
     assert env.reset()["neighbors"].dtype == np.int32
 
 
