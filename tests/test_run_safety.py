@@ -591,3 +591,13 @@ def test_controllers_inside_the_run_given_or_trusted_pass(root, tmp_path, contro
     point_at_controller(folder, path.get(controller, controller))
     config = RunConfig.from_dict(yaml.safe_load((folder / "config.yml").read_text()))
     check_stored_model_paths(config, folder, given, trusted)
+
+
+def test_resume_skips_a_damaged_replay_buffer(tmp_path):
+    assert main(train_args(tmp_path, 200, "--save-replay-buffer")) == 0
+    folder = run_of(tmp_path)
+    as_killed(folder)
+    cut_short(folder / "checkpoints" / "model_replay_buffer_200_steps.pkl")
+    with pytest.warns(UserWarning, match="Skipping the replay buffer .*model_replay_buffer_200_steps.pkl"):
+        assert main(train_args(tmp_path, 200, "--save-replay-buffer")) == 0
+    assert json.loads((folder / "eval.json").read_text())["resumed_from"] == "model_200_steps.zip"

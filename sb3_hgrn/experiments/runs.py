@@ -283,9 +283,9 @@ def train_run(
     The env and the model are built first, so bad arguments fail before the folder is touched. Then
     :func:`prepare_run_folder` decides: a killed run of the same configuration resumes from its latest
     checkpoint (``team_returns.csv`` rewound to the checkpoint) with the replay buffer saved beside it,
-    if any, else with an empty one; a
-    complete run or one of another configuration is refused unless ``overwrite``, which moves the old
-    run aside and removes it once the new run has written its ``eval.json``.
+    if any, else with an empty one; a complete run or one of another configuration is refused unless
+    ``overwrite``, which moves the old run aside and removes it once the new run has written its
+    ``eval.json``.
 
     :param save_freq: save a checkpoint every this many agent-steps (``None``: no checkpoints).
     :param log_interval: team episodes between log dumps.
@@ -356,14 +356,14 @@ def train_run(
 
 
 def _load_replay_buffer(model: GraphOffPolicyAlgorithm, path: Path) -> bool:
-    """Load the replay buffer at ``path`` into ``model``; whether it was there and whole (a damaged
-    one is skipped with a warning, leaving the model's empty buffer)."""
+    """Load the replay buffer at ``path`` into ``model``; whether it was loaded (one that is damaged or
+    does not fit is skipped with a warning, leaving the model's empty buffer)."""
     if not path.is_file():
         return False
     try:
         model.load_replay_buffer(path)
     except (pickle.UnpicklingError, EOFError, AttributeError, TypeError, ValueError) as error:
-        warnings.warn(f"Skipping the damaged replay buffer {path}: {error}", stacklevel=2)
+        warnings.warn(f"Skipping the replay buffer {path}, which cannot be loaded: {error}", stacklevel=2)
         return False
     return True
 
