@@ -214,6 +214,9 @@ class GraphPolicy(BasePolicy):
         :param episode_start: ``(n_slots,)``, true where ``observation`` is the first of an episode
             (its state is reset to zero).
         :return: actions ``(n_slots,)`` and the new state ``(hidden,)``.
+        :raises ValueError: naming the slot for a NaN, infinite or out-of-space observation or a bad
+            neighbour index (checked on the numpy arrays), and stating the expected shapes for a
+            ``state`` or ``episode_start`` that does not fit the batch.
         """
         self.set_training_mode(False)
         obs_tensor, vectorized = self.obs_to_tensor(observation)
