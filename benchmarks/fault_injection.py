@@ -139,7 +139,11 @@ def kill_during_checkpoint_write(root: Path, rng: random.Random) -> tuple[bool, 
     if damaged := damaged_files(run_of(root)):
         return False, f"damaged after the kill: {damaged}"
     held, detail = finishes_whole(root, *extra)
-    return held, f"{detail}; the kill left {', '.join(partial) or 'no partial file'}"
+    left = list(checkpoints.glob(".*.tmp"))
+    return held and not left, (
+        f"{detail}; the kill left {', '.join(partial) or 'no partial file'}, "
+        f"{'removed' if not left else 'still there'} when the run went on"
+    )
 
 
 def second_process_on_a_locked_folder(root: Path, rng: random.Random) -> tuple[bool, str]:

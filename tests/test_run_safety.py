@@ -152,8 +152,11 @@ def test_resume_skips_a_damaged_checkpoint(root, capsys):
     folder = run_of(root)
     as_killed(folder)
     cut_short(folder / "checkpoints" / "model_200_steps.zip")
+    leftover = folder / "checkpoints" / ".model_300_steps.zip.4242.tmp"  # of a write killed midway
+    leftover.write_bytes(b"PK")
     with pytest.warns(UserWarning, match="Skipping damaged model file .*model_200_steps.zip"):
         assert main(train_args(root)) == 0
+    assert not leftover.exists()
     results = json.loads((folder / "eval.json").read_text())
     assert results["resumed_from"] == "model_100_steps.zip" and results["agent_steps"] == 200
 

@@ -20,6 +20,10 @@ MODEL_MEMBERS = ("data", "policy.pth")
 """Members every SB3 model zip holds."""
 
 
+TEMPORARY_SUFFIX = ".tmp"
+"""End of the temporary files of :func:`atomic_write` (``.<name>.<pid>.tmp`` beside the target)."""
+
+
 class DamagedModelFileError(ValueError):
     """A model zip that cannot be loaded: cut short, not a zip, or with unreadable contents."""
 
@@ -32,7 +36,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "w") -> Iterator[IO[Any]]:
         module expects) or ``"wb"`` (binary).
     """
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp = path.with_name(f".{path.name}.{os.getpid()}{TEMPORARY_SUFFIX}")
     text = {} if "b" in mode else {"encoding": "utf-8", "newline": ""}
     try:
         with open(tmp, mode, **text) as file:
@@ -42,6 +46,18 @@ def atomic_write(path: str | os.PathLike, mode: str = "w") -> Iterator[IO[Any]]:
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def remove_temporary_files(folder: str | os.PathLike) -> int:
+    """Remove the temporary files that :func:`atomic_write` left under ``folder`` when its process was
+    killed mid-write; call it only while no other process writes there (e.g. holding the run lock).
+
+    :return: the number of files removed.
+    """
+    leftovers = list(Path(folder).rglob(f".*{TEMPORARY_SUFFIX}"))
+    for path in leftovers:
+        path.unlink(missing_ok=True)
+    return len(leftovers)
 
 
 def write_text_atomically(path: str | os.PathLike, text: str) -> None:

@@ -12,7 +12,8 @@ A run folder (``<root>/<env>/<preset>/seed_<seed>/``) holds::
     eval.json           the final evaluation; its presence marks the run as complete
     .lock, .lock.pid    the lock of the process working in the folder, and its pid
 
-Every file but ``team_returns.csv`` (appended to row by row) is written atomically. ``--overwrite``
+Every file but ``team_returns.csv`` (appended to row by row) is written atomically; the temporary
+file of a write cut short by a kill is removed when a run starts in the folder again. ``--overwrite``
 moves an old run to ``<folder>.replaced-<UTC time>/`` until the new run has finished.
 """
 
@@ -41,6 +42,7 @@ from sb3_hgrn.common.files import (
     DamagedModelFileError,
     check_model_file,
     model_file_path,
+    remove_temporary_files,
     save_model_atomically,
     saved_policy_module,
     write_text_atomically,
@@ -299,6 +301,7 @@ def train_run(
     model = _new_model(config, env, verbose, tensorboard_log, device)
     with RunLock(folder):
         checkpoint, replaced = prepare_run_folder(folder, config, overwrite)
+        remove_temporary_files(folder)  # of a killed write: the lock says that no other process writes
         if replaced is not None and verbose:
             print(f"Moved the old run aside to {replaced} (removed once this run has finished)")
         if checkpoint is not None:
