@@ -44,6 +44,15 @@ def _add_env_params(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_trust_config(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--trust-config",
+        action="store_true",
+        help="load models that the run's config.yml names for its env (Pursuit controllers) from "
+        "anywhere, not only from inside the run folder (loading a model can run code)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with its subcommands ``train``, ``evaluate``, ``render``, ``reproduce``,
     ``figure``."""
@@ -80,6 +89,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--save-freq", type=_positive_int, help="save a checkpoint every this many agent-steps"
     )
     train.add_argument(
+        "--save-replay-buffer",
+        action="store_true",
+        help="keep the replay buffer beside every checkpoint, so a resumed run continues with it",
+    )
+    train.add_argument(
         "--progress-bar", action="store_true", help="show a progress bar (needs tqdm and rich)"
     )
     train.add_argument("--verbose", type=int, default=1, help="0: quiet, 1: SB3's training logs")
@@ -108,6 +122,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--env", help="env of a bare .zip outside a run folder")
     evaluate.add_argument("--threads", type=_positive_int, help="torch CPU threads")
     _add_env_params(evaluate)
+    _add_trust_config(evaluate)
 
     render = commands.add_parser("render", help="write one episode of a saved run as a GIF")
     render.add_argument("path", help="run folder, its model.zip or a checkpoint")
@@ -120,6 +135,7 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--seed", type=int, help="env seed (default: the run's seed + 1000)")
     render.add_argument("--env", help="env of a bare .zip outside a run folder")
     _add_env_params(render)
+    _add_trust_config(render)
 
     reproduce = commands.add_parser("reproduce", help="reproduce a table of the paper")
     reproduce.add_argument("table", choices=["table1"], help="table1: every Table 1 row on its three envs")
@@ -214,6 +230,7 @@ def _train(args: argparse.Namespace) -> int:
         device=args.device,
         log_interval=args.log_interval,
         overwrite=args.overwrite,
+        save_replay_buffer=args.save_replay_buffer,
     )
     print(
         f"{config.preset} on {config.env} (budget {config.budget}, seed {config.seed}): team return "
@@ -237,6 +254,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         env=args.env,
         n_envs=args.n_envs,
         seed=args.seed,
+        trust_config=args.trust_config,
         **parse_assignments(args.env_param, "--env-param"),
     )
     mode = "greedy" if args.deterministic else "sampled"
@@ -265,6 +283,7 @@ def _render(args: argparse.Namespace) -> int:
         deterministic=args.deterministic,
         env=args.env,
         seed=args.seed,
+        trust_config=args.trust_config,
         **parse_assignments(args.env_param, "--env-param"),
     )
     print(f"wrote {args.out} ({n_frames} frames rendered)")

@@ -2,6 +2,7 @@
 atomic writes, damaged checkpoints skipped, a real ``sb3-hgrn train`` killed with SIGKILL, and one
 process per run folder; algorithm arguments checked at construction."""
 
+import copy
 import io
 import json
 import os
@@ -13,16 +14,27 @@ import time
 import zipfile
 from pathlib import Path
 
+import gymnasium
+import numpy as np
 import pytest
+import yaml
 from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.save_util import load_from_pkl, save_to_pkl
 
-from sb3_hgrn import SACHGRN, SoftHGRN, make_graph_vec_env
+from sb3_hgrn import SACHGRN, SoftHGRN, evaluate_graph_policy, make_graph_vec_env
 from sb3_hgrn.cli import main
+from sb3_hgrn.common.checks import observation_problem
+from sb3_hgrn.common.evaluation import RandomGraphPolicy
 from sb3_hgrn.common.files import DamagedModelFileError, save_model_atomically
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
+from sb3_hgrn.envs import pursuit_v0
 from sb3_hgrn.experiments.callbacks import rewind_team_returns
+from sb3_hgrn.experiments.config import RunConfig
 from sb3_hgrn.experiments.lock import PID_FILE, RunLock
+from sb3_hgrn.experiments.runs import check_stored_model_paths
 from sb3_hgrn.experiments.table1 import LOG_FILE, Job, run_jobs
+from sb3_hgrn.sac_hgrn.policies import SACHGRNPolicy
+from tests.toy_envs import BadValueEnv, DictOnlyEnv
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -140,8 +152,11 @@ def test_resume_skips_a_damaged_checkpoint(root, capsys):
     folder = run_of(root)
     as_killed(folder)
     cut_short(folder / "checkpoints" / "model_200_steps.zip")
+    leftover = folder / "checkpoints" / ".model_300_steps.zip.4242.tmp"  # of a write killed midway
+    leftover.write_bytes(b"PK")
     with pytest.warns(UserWarning, match="Skipping damaged model file .*model_200_steps.zip"):
         assert main(train_args(root)) == 0
+    assert not leftover.exists()
     results = json.loads((folder / "eval.json").read_text())
     assert results["resumed_from"] == "model_100_steps.zip" and results["agent_steps"] == 200
 
@@ -368,3 +383,224 @@ def test_load_of_the_other_algorithm_says_which_class_to_use(finished_root, smal
     ):
         SACHGRN.load(soft)
     assert isinstance(SACHGRN.load(sac), SACHGRN) and isinstance(SoftHGRN.load(soft), SoftHGRN)
+
+
+BUFFER_ARRAYS = ("observations", "next_observations", "neighbors", "actions", "rewards", "hidden",
+                 "episode_starts")  # fmt: skip
+
+
+def assert_same_rows(buffer, other, rows: int) -> None:
+    """The first ``rows`` steps of two replay buffers hold the same transitions."""
+    for name in BUFFER_ARRAYS:
+        assert (getattr(buffer, name)[:rows] == getattr(other, name)[:rows]).all(), name
+
+
+def test_replay_buffer_round_trip_across_a_load(small_env, tmp_path):
+    model = SoftHGRN("GraphPolicy", small_env, batch_size=4, seed=0)
+    model.learn(150)
+    model.save(tmp_path / "model.zip")
+    model.save_replay_buffer(tmp_path / "buffer.pkl")
+    loaded = SoftHGRN.load(tmp_path / "model.zip", env=small_env)
+    loaded.load_replay_buffer(tmp_path / "buffer.pkl")
+    buffer, original = loaded.replay_buffer, model.replay_buffer
+    assert (buffer.pos, buffer.full) == (original.pos, original.full) and buffer.pos > 0
+    assert_same_rows(buffer, original, buffer.buffer_size)
+    np.random.seed(0)
+    first = original.sample(8)
+    np.random.seed(0)
+    assert all((a == b).all() for a, b in zip(first[:-1], buffer.sample(8)[:-1], strict=True))
+
+
+def test_load_replay_buffer_of_another_agent_count_says_what_differs(small_env, tmp_path):
+    model = SoftHGRN("GraphPolicy", small_env, batch_size=4)
+    model.save_replay_buffer(tmp_path / "buffer.pkl")
+    other = make_graph_vec_env("surviving_v0", env_kwargs={"n_agents": 6, "map_size": 10})
+    with pytest.raises(ValueError, match=r"does not fit this model: slots 5 \(model 6\), agents per copy 5"):
+        SoftHGRN("GraphPolicy", other, batch_size=4).load_replay_buffer(tmp_path / "buffer.pkl")
+    with pytest.raises(TypeError, match="holds a dict, not a GraphReplayBuffer"):
+        save_to_pkl(tmp_path / "dict.pkl", {})
+        model.load_replay_buffer(tmp_path / "dict.pkl")
+
+
+def test_a_run_resumed_with_its_replay_buffer_continues_it(tmp_path):
+    """An uninterrupted run's buffer at 100 agent-steps is the start of a run resumed from there."""
+    assert main(train_args(tmp_path, 200, "--save-replay-buffer")) == 0
+    checkpoints = run_of(tmp_path) / "checkpoints"
+    assert sorted(path.name for path in checkpoints.glob("*.pkl")) == [
+        "model_replay_buffer_100_steps.pkl", "model_replay_buffer_200_steps.pkl"
+    ]  # fmt: skip
+    at_100, at_200 = (load_from_pkl(checkpoints / f"model_replay_buffer_{n}_steps.pkl") for n in (100, 200))
+    assert (at_100.pos, at_200.pos) == (19, 39)  # a checkpoint's own vec-step is stored after it
+    assert_same_rows(at_100, at_200, 19)
+    as_killed(run_of(tmp_path))
+    (checkpoints / "model_200_steps.zip").unlink()
+    captured = {}
+
+    def record_buffer(self, *args, **kwargs):
+        captured["buffer"] = copy.deepcopy(self.replay_buffer)
+        return learn(self, *args, **kwargs)
+
+    learn = GraphOffPolicyAlgorithm.learn
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(GraphOffPolicyAlgorithm, "learn", record_buffer)
+        assert main(train_args(tmp_path, 200, "--save-replay-buffer")) == 0
+    assert captured["buffer"].pos == 19
+    assert_same_rows(captured["buffer"], at_100, captured["buffer"].buffer_size)
+    resumed = load_from_pkl(checkpoints / "model_replay_buffer_200_steps.pkl")
+    assert resumed.pos == 19 + 19
+    assert_same_rows(resumed, at_200, 19)
+
+
+BAD_OBSERVATIONS = [
+    (float("nan"), r"the non-finite value nan at obs index 0"),
+    (float("inf"), r"the non-finite value inf at obs index 0"),
+    (1e6, r"the value 1000000.0 at obs index 0, outside the observation space \[-1.0, 1.0\]"),
+]
+
+
+@pytest.mark.parametrize("value, problem", BAD_OBSERVATIONS)
+@pytest.mark.parametrize("algorithm", [SoftHGRN, SACHGRN])
+def test_a_bad_observation_while_learning_names_the_agent_and_step(algorithm, value, problem):
+    env = make_graph_vec_env(lambda: BadValueEnv(value), n_envs=2)
+    model = algorithm("GraphPolicy", env, batch_size=4, learning_starts=0)
+    with pytest.raises(ValueError, match=f"{problem} for agent 1 of env copy 0 \\(slot 1\\) at step 3 of"):
+        model.learn(60)
+
+
+def test_float_neighbour_indices_are_refused():
+    with pytest.raises(
+        ValueError, match=r"the neighbour index 0.5, not a whole number for agent 0 .* step 0"
+    ):
+        make_graph_vec_env(lambda: BadValueEnv(offset=0.5)).reset()
+    env = make_graph_vec_env(lambda: BadValueEnv(offset=0.0))  # whole numbers as floats pass
+    assert env.reset()["neighbors"].dtype == np.int32
+
+
+@pytest.fixture(scope="module")
+def predicting():
+    """A model on 2 copies of :class:`DictOnlyEnv` and a first observation of its env."""
+    env = make_graph_vec_env(DictOnlyEnv, n_envs=2)
+    return SoftHGRN("GraphPolicy", env, batch_size=4, policy_kwargs={"hidden_dim": 16}), env.reset()
+
+
+@pytest.mark.parametrize("value, problem", BAD_OBSERVATIONS)
+@pytest.mark.parametrize("deterministic", [False, True])
+def test_a_bad_observation_in_predict_names_the_agent(predicting, value, problem, deterministic):
+    model, observation = predicting
+    observation = {key: array.copy() for key, array in observation.items()}
+    observation["obs"][4, 0] = value
+    with pytest.raises(
+        ValueError, match=f"predict\\(\\) got {problem} for agent 1 of env copy 1 \\(slot 4\\)"
+    ):
+        model.predict(observation, deterministic=deterministic)
+
+
+def test_float_neighbour_indices_in_predict_are_refused(predicting):
+    model, observation = predicting
+    neighbors = observation["neighbors"] + 0.5
+    with pytest.raises(
+        ValueError, match="the neighbour index 0.5, not a whole number for agent 0 of env copy 0"
+    ):
+        model.predict({**observation, "neighbors": neighbors})
+    with pytest.raises(ValueError, match=r"the neighbour index 3, not one of the agent indices in \[-1, 2\]"):
+        model.predict({**observation, "neighbors": observation["neighbors"] + 1})
+
+
+def test_evaluate_on_nan_rewards_raises_naming_the_agent_and_step():
+    env = make_graph_vec_env(lambda: DictOnlyEnv(reward=float("nan")))
+    with pytest.raises(
+        ValueError, match=r"non-finite rewards: nan for agent 0 of env copy 0 \(slot 0\) at step 1 "
+    ):
+        evaluate_graph_policy(RandomGraphPolicy(env, seed=0), env, n_eval_episodes=1)
+
+
+@pytest.mark.parametrize(
+    "policy, error, message",
+    [
+        (
+            None,
+            TypeError,
+            "policy must be one of the names 'GraphPolicy' or a subclass of SoftHGRNPolicy, got None",
+        ),
+        (3, TypeError, "policy must be one of the names 'GraphPolicy' .* got 3"),
+        (dict, TypeError, "got <class 'dict'>"),
+        (SACHGRNPolicy, TypeError, "a subclass of SoftHGRNPolicy"),
+        (
+            "MlpPolicy",
+            ValueError,
+            "Unknown policy 'MlpPolicy': policy must be one of the names 'GraphPolicy'",
+        ),
+    ],
+)
+def test_a_value_that_is_no_policy_names_the_accepted_ones(small_env, policy, error, message):
+    with pytest.raises(error, match=message):
+        SoftHGRN(policy, small_env, batch_size=4)
+
+
+def test_predict_states_the_expected_shapes_of_state_and_episode_start(predicting):
+    model, observation = predicting
+    _, state = model.predict(observation)
+    assert state[0].shape == (1, 6, 16)
+    with pytest.raises(
+        ValueError, match=r"state must be the tuple \(hidden,\) .* got an array of shape \(1, 6, 16\)"
+    ):
+        model.predict(observation, state=state[0])
+    with pytest.raises(ValueError, match=r"state\[0\] has shape \(1, 3, 16\), expected \(1, 6, 16\)"):
+        model.predict(observation, state=(state[0][:, :3],))
+    with pytest.raises(
+        ValueError, match=r"episode_start has shape \(4,\), expected \(6,\): one flag per slot"
+    ):
+        model.predict(observation, state=state, episode_start=np.ones(4, dtype=bool))
+    actions, _ = model.predict(observation, state=state, episode_start=np.zeros(6, dtype=bool))
+    assert actions.shape == (6,)
+
+
+def test_infinite_observations_are_refused_in_an_unbounded_space():
+    space = gymnasium.spaces.Box(-np.inf, np.inf, shape=(2,), dtype=np.float32)
+    observations = {"obs": np.array([[0.0, 1.0], [0.0, -np.inf]]), "neighbors": np.array([[0], [1]])}
+    assert observation_problem(observations, space, 2) == (1, "the non-finite value -inf at obs index 1")
+    assert observation_problem({**observations, "obs": np.zeros((2, 2))}, space, 2) is None
+
+
+def point_at_controller(folder: Path, controller: str) -> None:
+    """Make the run in ``folder`` a Pursuit run whose ``config.yml`` sets ``prey_controller``."""
+    data = yaml.safe_load((folder / "config.yml").read_text())
+    data.update(env="pursuit_v0", env_kwargs={"learners": "predator", "prey_controller": controller})
+    (folder / "config.yml").write_text(yaml.safe_dump(data))
+
+
+def test_evaluate_refuses_a_controller_a_config_points_outside_the_run(root, tmp_path, monkeypatch, capsys):
+    folder = run_of(root)
+    outside = tmp_path / "elsewhere" / "prey.zip"
+    point_at_controller(folder, str(outside))
+    loads = []
+    monkeypatch.setattr(pursuit_v0, "load_controller", lambda *args: loads.append(args))
+    error = fails_with(["evaluate", str(folder), "--episodes", "1"], capsys)
+    assert f"sets prey_controller='{outside}', a model outside the run folder" in error
+    assert (
+        "can run code" in error and "--trust-config" in error and "--env-param prey_controller=PATH" in error
+    )
+    assert loads == []
+
+
+@pytest.mark.parametrize(
+    "controller, given, trusted",
+    [("evader", (), False), ("INSIDE", (), False), ("OUTSIDE", ("prey_controller",), False),
+     ("OUTSIDE", (), True)],
+)  # fmt: skip
+def test_controllers_inside_the_run_given_or_trusted_pass(root, tmp_path, controller, given, trusted):
+    folder = run_of(root)
+    path = {"INSIDE": str(folder / "checkpoints" / "model_100_steps"), "OUTSIDE": str(tmp_path / "x.zip")}
+    point_at_controller(folder, path.get(controller, controller))
+    config = RunConfig.from_dict(yaml.safe_load((folder / "config.yml").read_text()))
+    check_stored_model_paths(config, folder, given, trusted)
+
+
+def test_resume_skips_a_damaged_replay_buffer(tmp_path):
+    assert main(train_args(tmp_path, 200, "--save-replay-buffer")) == 0
+    folder = run_of(tmp_path)
+    as_killed(folder)
+    cut_short(folder / "checkpoints" / "model_replay_buffer_200_steps.pkl")
+    with pytest.warns(UserWarning, match="Skipping the replay buffer .*model_replay_buffer_200_steps.pkl"):
+        assert main(train_args(tmp_path, 200, "--save-replay-buffer")) == 0
+    assert json.loads((folder / "eval.json").read_text())["resumed_from"] == "model_200_steps.zip"

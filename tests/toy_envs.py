@@ -86,6 +86,24 @@ class DictOnlyEnv(ParallelEnv):
         return (np.arange(n)[:, None] + np.arange(n)[None, :]) % n
 
 
+class BadValueEnv(DictOnlyEnv):
+    """:class:`DictOnlyEnv` (3 agents, observations in ``[-1, 1]``) where agent 1 observes ``value``
+    from step 3 on, and whose neighbour indices are offset by ``offset``."""
+
+    def __init__(self, value: float = 0.5, offset: float = 0):
+        super().__init__(max_cycles=5)
+        self.value, self.offset = value, offset
+
+    def step(self, actions):
+        observations, *rest = super().step(actions)
+        if self._t >= 3:
+            observations["a1"][0] = self.value
+        return (observations, *rest)
+
+    def neighbors(self):
+        return super().neighbors() + self.offset
+
+
 def bit_vec_env(n_envs: int = 4, n_agents: int = 4, seed: int = 0):
     """Graph VecEnv of ``n_envs`` copies of :class:`NeighborBitEnv` with 8-step episodes."""
     return make_graph_vec_env(lambda: NeighborBitEnv(n_agents, max_cycles=8), n_envs=n_envs, seed=seed)

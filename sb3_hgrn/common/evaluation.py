@@ -10,6 +10,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback, EventCallback
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_hgrn.common.checks import check_rewards
 from sb3_hgrn.common.off_policy import check_graph_env
 
 
@@ -57,6 +58,7 @@ def evaluate_graph_policy(
     :param n_eval_episodes: number of team episodes.
     :param deterministic: greedy actions instead of sampled ones.
     :param return_episode_rewards: return the per-episode lists instead of mean and std.
+    :raises ValueError: on a NaN or infinite reward, naming the agent and the step.
     :return: ``(mean, std)`` of team returns, or ``(returns, lengths)``.
     """
     env = check_graph_env(env)
@@ -71,11 +73,14 @@ def evaluate_graph_policy(
     observations = env.reset()
     state = None
     episode_starts = np.ones(env.num_envs, dtype=bool)
+    step = 0
     while (counts < targets).any():
         actions, state = model.predict(
             observations, state=state, episode_start=episode_starts, deterministic=deterministic
         )
-        observations, _, dones, infos = env.step(actions)
+        observations, rewards, dones, infos = env.step(actions)
+        step += 1
+        check_rewards(np.asarray(rewards), n_agents, f"at step {step} of the evaluation")
         episode_starts = np.asarray(dones, dtype=bool)
         for copy in np.flatnonzero(episode_starts[::n_agents]):
             if counts[copy] < targets[copy]:

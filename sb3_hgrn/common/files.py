@@ -13,12 +13,16 @@ import json
 import os
 import zipfile
 import zlib
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import IO, Any
 
 MODEL_MEMBERS = ("data", "policy.pth")
 """Members every SB3 model zip holds."""
+
+
+TEMPORARY_SUFFIX = ".tmp"
+"""End of the temporary files of :func:`atomic_write` (``.<name>.<pid>.tmp`` beside the target)."""
 
 
 class DamagedModelFileError(ValueError):
@@ -33,7 +37,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "w") -> Iterator[IO[Any]]:
         module expects) or ``"wb"`` (binary).
     """
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp = path.with_name(f".{path.name}.{os.getpid()}{TEMPORARY_SUFFIX}")
     text = {} if "b" in mode else {"encoding": "utf-8", "newline": ""}
     try:
         with open(tmp, mode, **text) as file:
@@ -43,6 +47,18 @@ def atomic_write(path: str | os.PathLike, mode: str = "w") -> Iterator[IO[Any]]:
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def remove_temporary_files(folder: str | os.PathLike) -> int:
+    """Remove the temporary files that :func:`atomic_write` left under ``folder`` when its process was
+    killed mid-write; call it only while no other process writes there (e.g. holding the run lock).
+
+    :return: the number of files removed.
+    """
+    leftovers = list(Path(folder).rglob(f".*{TEMPORARY_SUFFIX}"))
+    for path in leftovers:
+        path.unlink(missing_ok=True)
+    return len(leftovers)
 
 
 def write_text_atomically(path: str | os.PathLike, text: str) -> None:
@@ -62,10 +78,15 @@ def write_csv_atomically(path: str | os.PathLike, rows: Sequence[dict[str, Any]]
             writer.writerow({key: "" if value is None else value for key, value in row.items()})
 
 
+def save_atomically(save: Callable[[IO[bytes]], Any], path: str | os.PathLike) -> None:
+    """``save(file)`` into a binary file opened with :func:`atomic_write` for ``path``."""
+    with atomic_write(path, "wb") as file:
+        save(file)
+
+
 def save_model_atomically(model: Any, path: str | os.PathLike) -> None:
     """``model.save(path)`` (an SB3 model) through :func:`atomic_write`."""
-    with atomic_write(path, "wb") as file:
-        model.save(file)
+    save_atomically(model.save, path)
 
 
 def model_file_path(path: str | os.PathLike) -> Path:

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import io
 import os
+import pathlib
 import sys
 import time
 from collections import deque
@@ -13,6 +15,7 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.save_util import load_from_pkl
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, RolloutReturn, Schedule, TrainFreq
 from stable_baselines3.common.utils import (
     LinearSchedule,
@@ -23,6 +26,7 @@ from stable_baselines3.common.utils import (
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_hgrn.common.buffers import GraphReplayBuffer
+from sb3_hgrn.common.checks import check_rewards
 from sb3_hgrn.common.files import check_model_file, saved_policy_module
 from sb3_hgrn.common.policies import GraphPolicy, check_graph_spaces
 from sb3_hgrn.common.temperature import TemperatureController, group_means, target_entropy
@@ -95,6 +99,22 @@ def check_algorithm_arguments(
             f"buffer_size must hold at least one batch of graphs: batch_size * n_agents = {batch_size} * "
             f"{n_agents} = {batch_size * n_agents} agent-transitions, got {buffer_size}."
         )
+
+
+def check_policy(policy: Any, aliases: dict[str, type]) -> None:
+    """Raise an error naming the accepted values unless ``policy`` is a name in ``aliases`` (an
+    algorithm's ``policy_aliases``) or a subclass of one of their classes (``TypeError`` for other
+    kinds of values, ``ValueError`` for an unknown name)."""
+    classes = tuple(aliases.values())
+    accepted = (
+        f"one of the names {', '.join(map(repr, aliases))} or a subclass of "
+        f"{' or '.join(cls.__name__ for cls in classes)}"
+    )
+    if isinstance(policy, str):
+        if policy not in aliases:
+            raise ValueError(f"Unknown policy {policy!r}: policy must be {accepted}.")
+    elif not (isinstance(policy, type) and issubclass(policy, classes)):
+        raise TypeError(f"policy must be {accepted}, got {policy!r}.")
 
 
 def _policy_modules(algorithm: type) -> set[str]:
@@ -176,6 +196,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         seed: int | None,
         device: th.device | str,
     ):
+        check_policy(policy, self.policy_aliases)
         if env is not None:
             env = check_graph_env(env)
         check_algorithm_arguments(
@@ -355,6 +376,36 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
                     f"{other.__name__}.load."
                 )
 
+    def load_replay_buffer(
+        self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True
+    ) -> None:
+        """Load a :class:`GraphReplayBuffer` written by ``save_replay_buffer`` (also by another
+        instance of this model, e.g. before a ``load``).
+
+        The buffer must have been filled on the model's slot layout (``n_envs`` slots of
+        ``n_agents``-agent copies) with its observation shape and recurrent-state width; anything
+        else raises a ``ValueError`` saying what differs. ``truncate_last_traj`` is SB3's
+        ``HerReplayBuffer`` option and has no effect here.
+        """
+        buffer = load_from_pkl(path, self.verbose)
+        if not isinstance(buffer, GraphReplayBuffer):
+            raise TypeError(f"{path} holds a {type(buffer).__name__}, not a GraphReplayBuffer.")
+        layout = {
+            "slots": (buffer.n_envs, self.n_envs),
+            "agents per copy": (buffer.n_agents, self.n_agents),
+            "observation shape": (buffer.observations.shape[3:], self.observation_space["obs"].shape),
+            "recurrent-state width": (buffer.hidden.shape[-1], self.policy.state_dim),
+        }
+        differences = [
+            f"{name} {saved} (model {own})" for name, (saved, own) in layout.items() if saved != own
+        ]
+        if differences:
+            raise ValueError(
+                f"The replay buffer in {path} does not fit this model: {', '.join(differences)}."
+            )
+        buffer.device = self.device
+        self.replay_buffer = buffer
+
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return ["policy", *self._optimizer_names(), "temperature.optimizer"], []
 
@@ -437,11 +488,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
             hidden_in = self._last_hidden * (1.0 - self._last_episode_starts)[:, None]
             actions, next_hidden = self._choose_actions(hidden_in.astype(np.float32), learning_starts)
             new_obs, rewards, dones, infos = env.step(actions)
-            if not np.all(np.isfinite(rewards)):
-                bad = np.flatnonzero(~np.isfinite(rewards))
-                raise ValueError(
-                    f"The env returned non-finite rewards {rewards[bad][:5]} at slots {bad[:5]}."
-                )
+            check_rewards(rewards, self.n_agents, f"at agent-step {self.num_timesteps + env.num_envs}")
             self.num_timesteps += env.num_envs
             n_steps += 1
             callback.update_locals(locals())

@@ -10,10 +10,12 @@ from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import Schedule
 
+from sb3_hgrn.common.checks import observation_problem, slot_name
 from sb3_hgrn.common.hgrn import HGRN, GraphBatch
 from sb3_hgrn.common.temperature import EntropyTemperature
 
 GraphObs = dict[str, th.Tensor]
+NO_AGENT_COUNT = "The policy does not know n_agents yet; attach a graph env to the model."
 
 
 def check_graph_spaces(observation_space: spaces.Space, action_space: spaces.Space) -> None:
@@ -158,7 +160,7 @@ class GraphPolicy(BasePolicy):
         n_slots = obs["obs"].shape[0]
         n_agents = self.n_agents
         if n_agents is None:
-            raise RuntimeError("The policy does not know n_agents yet; attach a graph env to the model.")
+            raise RuntimeError(NO_AGENT_COUNT)
         if n_slots % n_agents != 0:
             raise ValueError(
                 f"A batch of {n_slots} observations is not a whole number of graphs of {n_agents} "
@@ -212,6 +214,9 @@ class GraphPolicy(BasePolicy):
         :param episode_start: ``(n_slots,)``, true where ``observation`` is the first of an episode
             (its state is reset to zero).
         :return: actions ``(n_slots,)`` and the new state ``(hidden,)``.
+        :raises ValueError: naming the slot for a NaN, infinite or out-of-space observation or a bad
+            neighbour index (checked on the numpy arrays), and stating the expected shapes for a
+            ``state`` or ``episode_start`` that does not fit the batch.
         """
         self.set_training_mode(False)
         obs_tensor, vectorized = self.obs_to_tensor(observation)
@@ -220,16 +225,56 @@ class GraphPolicy(BasePolicy):
                 "predict() takes the observations of all slots of a graph VecEnv (a batch), not the "
                 "observation of a single agent."
             )
-        n_slots = obs_tensor["obs"].shape[0]
-        hidden = np.zeros((n_slots, self.state_dim), dtype=np.float32) if state is None else state[0][0]
-        if hidden.shape != (n_slots, self.state_dim):
-            raise ValueError(
-                f"state has shape {(1, *hidden.shape)}, expected {(1, n_slots, self.state_dim)}."
-            )
-        if episode_start is not None:
-            hidden = hidden * (1.0 - np.asarray(episode_start, dtype=np.float32))[:, None]
+        self._check_observations(observation)
+        hidden = self._initial_state(state, episode_start, obs_tensor["obs"].shape[0])
         with th.no_grad():
             actions, new_hidden = self.act(
                 obs_tensor, th.as_tensor(hidden, dtype=th.float32, device=self.device), deterministic
             )
         return actions.cpu().numpy(), (new_hidden.cpu().numpy()[None],)
+
+    def _check_observations(self, observation: dict[str, np.ndarray]) -> None:
+        """Raise a ``ValueError`` naming the first slot of a slot batch whose observation is bad (see
+        :func:`~sb3_hgrn.common.checks.observation_problem`)."""
+        if self.n_agents is None:
+            raise RuntimeError(NO_AGENT_COUNT)
+        problem = observation_problem(observation, self.observation_space["obs"], self.n_agents)
+        if problem is not None:
+            slot, what = problem
+            raise ValueError(
+                f"predict() got {what} for {slot_name(slot, self.n_agents)} in the observations of this call."
+            )
+
+    def _initial_state(
+        self, state: tuple[np.ndarray, ...] | None, episode_start: np.ndarray | None, n_slots: int
+    ) -> np.ndarray:
+        """The recurrent state ``(n_slots, state_dim)`` fed in by :meth:`predict`: ``state``'s (zero
+        without one), reset where ``episode_start`` is true; a ``ValueError`` states the expected
+        shapes when either does not fit the batch."""
+        expected = (1, n_slots, self.state_dim)
+        if state is None:
+            hidden = np.zeros(expected[1:], dtype=np.float32)
+        else:
+            if not isinstance(state, tuple | list) or len(state) != 1:
+                given = (
+                    f"an array of shape {state.shape}" if isinstance(state, np.ndarray) else repr(state)[:80]
+                )
+                raise ValueError(
+                    f"state must be the tuple (hidden,) returned by the previous predict(), with hidden of "
+                    f"shape {expected} (1, n_slots, state_dim), or None; got {given}."
+                )
+            hidden = np.asarray(state[0])
+            if hidden.shape != expected:
+                raise ValueError(
+                    f"state[0] has shape {hidden.shape}, expected {expected} (1, n_slots, state_dim) for "
+                    f"this batch of {n_slots} slots."
+                )
+            hidden = hidden[0]
+        if episode_start is not None:
+            starts = np.asarray(episode_start)
+            if starts.shape != (n_slots,):
+                raise ValueError(
+                    f"episode_start has shape {starts.shape}, expected ({n_slots},): one flag per slot."
+                )
+            hidden = hidden * (1.0 - starts.astype(np.float32))[:, None]
+        return hidden

@@ -28,6 +28,7 @@ from pettingzoo import AECEnv, ParallelEnv
 from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
+from sb3_hgrn.common.checks import observation_problem, slot_name
 from sb3_hgrn.common.graph_env import GraphParallelEnv
 from sb3_hgrn.common.wrappers import as_parallel_env
 
@@ -88,7 +89,7 @@ class ParallelEnvAdapter(GraphParallelEnv):
         )
 
     def neighbors(self) -> np.ndarray:
-        return np.asarray(self.env.neighbors(), dtype=np.int64)
+        return np.asarray(self.env.neighbors())
 
     def render(self):
         return self.env.render()
@@ -135,7 +136,10 @@ def as_graph_env(env: Any) -> GraphParallelEnv:
 class GraphVecEnv(VecEnv):
     """SB3 ``VecEnv`` with one slot per agent of ``n_copies`` copies of a many-agent env.
 
-    Copies are stepped in this process (one Python call per copy, none per agent). A copy resets
+    Copies are stepped in this process (one Python call per copy, none per agent). Every observation
+    a copy returns (also the final one of an episode) is checked at once: a NaN or infinite value, one
+    outside the observation space, or a neighbour index that is not a whole number in
+    ``[-1, n_agents - 1]`` raises a ``ValueError`` naming the agent, its copy and the step. A copy resets
     when all its agents are done; its slots then report ``done=True``, the final observation in
     ``info["terminal_observation"]``, ``info["TimeLimit.truncated"]`` for time-limit ends and the
     team's episode figures in ``info["team_episode"]`` (see :meth:`_finish_episode`).
@@ -190,17 +194,19 @@ class GraphVecEnv(VecEnv):
 
     # --- VecEnv API ----------------------------------------------------------------------------
     def reset(self) -> VecEnvObs:
-        observations = [
-            env.reset_arrays(seed=seed, options=self._options[copy * self.n_agents] or None)
-            for copy, (env, seed) in enumerate(zip(self.envs, self._seeds_per_copy, strict=True))
-        ]
+        self._team_returns[:] = 0.0
+        self._episode_lengths[:] = 0
+        observations, neighbors = [], []
+        for copy, (env, seed) in enumerate(zip(self.envs, self._seeds_per_copy, strict=True)):
+            obs = env.reset_arrays(seed=seed, options=self._options[copy * self.n_agents] or None)
+            obs, graph = self._checked(copy, obs, env.neighbors())
+            observations.append(obs)
+            neighbors.append(graph)
         self._seeds_per_copy = [None] * self.n_copies
         self._reset_seeds()
         self._reset_options()
-        self._team_returns[:] = 0.0
-        self._episode_lengths[:] = 0
         self.reset_infos = [{} for _ in range(self.num_envs)]
-        return self._stack(observations, [env.neighbors() for env in self.envs])
+        return self._stack(observations, neighbors)
 
     def step_async(self, actions: np.ndarray) -> None:
         actions = np.asarray(actions).reshape(-1)
@@ -219,10 +225,10 @@ class GraphVecEnv(VecEnv):
             self._team_returns[copy] += float(reward.sum())
             self._episode_lengths[copy] += 1
             done = terminated | truncated
-            graph = env.neighbors()
+            obs, graph = self._checked(copy, obs, env.neighbors())
             if done.all():
                 self._finish_episode(copy, obs, graph, terminated, truncated, team_info, infos)
-                obs, graph = env.reset_arrays(), env.neighbors()
+                obs, graph = self._checked(copy, env.reset_arrays(), env.neighbors())
             elif done.any():
                 raise NotImplementedError(
                     "Some agents ended their episode before the others; graph envs must keep every "
@@ -247,7 +253,7 @@ class GraphVecEnv(VecEnv):
         figures, and the whole graph's ``final_observation`` and ``terminated`` arrays.
         """
         slots = slice(copy * self.n_agents, (copy + 1) * self.n_agents)
-        final = {"obs": obs, "neighbors": graph.astype(np.int32)}
+        final = {"obs": obs, "neighbors": graph}
         final.update({key: value[slots] for key, value in self._group_keys.items()})
         team_episode = {
             "r": float(self._team_returns[copy]),
@@ -266,22 +272,26 @@ class GraphVecEnv(VecEnv):
         self._team_returns[copy] = 0.0
         self._episode_lengths[copy] = 0
 
-    def _stack(self, observations: list[np.ndarray], neighbors: list[np.ndarray]) -> dict[str, np.ndarray]:
+    def _checked(self, copy: int, obs: np.ndarray, graph: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One copy's observations ``(n_agents, obs_dim)`` and neighbours ``(n_agents, max_neighbors)``
+        as returned by its env, after checking them (see the class docstring); the neighbours come
+        back as int32."""
         expected = (self.n_agents, self.max_neighbors)
-        for graph in neighbors:
-            if graph.shape != expected:
-                raise ValueError(
-                    f"neighbors() must return shape {expected} (max_neighbors), got {graph.shape}."
-                )
-            if graph.size and (graph.min() < -1 or graph.max() >= self.n_agents):
-                raise ValueError(
-                    f"neighbors() must return agent indices in [-1, {self.n_agents - 1}], got values "
-                    f"in [{graph.min()}, {graph.max()}]."
-                )
-        stacked = {
-            "obs": np.concatenate(observations),
-            "neighbors": np.concatenate(neighbors).astype(np.int32, copy=False),
-        }
+        if graph.shape != expected:
+            raise ValueError(f"neighbors() must return shape {expected} (max_neighbors), got {graph.shape}.")
+        problem = observation_problem(
+            {"obs": obs, "neighbors": graph}, self.observation_space["obs"], self.n_agents
+        )
+        if problem is not None:
+            agent, what = problem
+            raise ValueError(
+                f"The env returned {what} for {slot_name(copy * self.n_agents + agent, self.n_agents)} at "
+                f"step {self._episode_lengths[copy]} of the copy's episode (0: its reset)."
+            )
+        return obs, graph.astype(np.int32)
+
+    def _stack(self, observations: list[np.ndarray], neighbors: list[np.ndarray]) -> dict[str, np.ndarray]:
+        stacked = {"obs": np.concatenate(observations), "neighbors": np.concatenate(neighbors)}
         stacked.update({key: value.copy() for key, value in self._group_keys.items()})
         return stacked
 

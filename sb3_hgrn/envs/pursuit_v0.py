@@ -407,6 +407,17 @@ def load_controller(path: str | os.PathLike, controller_class: type | None = Non
     return controller_class.load(path, device="cpu")
 
 
+def model_paths(env_kwargs: dict[str, Any]) -> dict[str, str]:
+    """The controllers of ``env_kwargs`` given as saved models' paths, by argument name (loading one
+    unpickles it, so it can run code)."""
+    paths = {}
+    for side in SIDES:
+        spec = env_kwargs.get(f"{side}_controller")
+        if isinstance(spec, str | os.PathLike) and spec not in SCRIPTED_CONTROLLERS[side]:
+            paths[f"{side}_controller"] = os.fspath(spec)
+    return paths
+
+
 def _resolve_controller(spec: Any, side: str, controller_class: type | None) -> Any:
     """A scripted controller's name, or a model (loaded when ``spec`` is a path)."""
     names = SCRIPTED_CONTROLLERS[side]

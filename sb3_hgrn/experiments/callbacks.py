@@ -5,12 +5,13 @@ from __future__ import annotations
 import json
 import os
 import time
+from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback
 
-from sb3_hgrn.common.files import save_model_atomically, write_text_atomically
+from sb3_hgrn.common.files import save_atomically, save_model_atomically, write_text_atomically
 
 TEAM_RETURNS_FILE = "team_returns.csv"
 
@@ -105,21 +106,49 @@ def rewind_team_returns(path: str | os.PathLike, agent_steps: int) -> int:
 
 class AtomicCheckpointCallback(CheckpointCallback):
     """SB3's ``CheckpointCallback`` (``<save_path>/<name_prefix>_<agent-steps>_steps.zip`` every
-    ``save_freq`` calls) whose zips are written to a temporary file and renamed, so a process killed
-    while saving leaves the previous checkpoints whole and no partial zip.
+    ``save_freq`` calls) whose files are written to a temporary file and renamed, so a process killed
+    while saving leaves the previous checkpoints whole and no partial file.
+
+    With ``save_replay_buffer`` the model's replay buffer goes beside each checkpoint, as
+    ``<name_prefix>_replay_buffer_<agent-steps>_steps.pkl`` (see :func:`replay_buffer_path`), written
+    before the zip: a checkpoint zip that exists has its buffer.
 
     :param save_freq: save a checkpoint every ``save_freq`` calls (vec-steps).
     :param save_path: folder of the checkpoints.
     :param name_prefix: start of the file names.
+    :param save_replay_buffer: also save the replay buffer.
     """
 
-    def __init__(self, save_freq: int, save_path: str, name_prefix: str = "rl_model", verbose: int = 0):
-        super().__init__(save_freq, save_path, name_prefix=name_prefix, verbose=verbose)
+    def __init__(
+        self,
+        save_freq: int,
+        save_path: str,
+        name_prefix: str = "rl_model",
+        save_replay_buffer: bool = False,
+        verbose: int = 0,
+    ):
+        super().__init__(
+            save_freq,
+            save_path,
+            name_prefix=name_prefix,
+            save_replay_buffer=save_replay_buffer,
+            verbose=verbose,
+        )
 
     def _on_step(self) -> bool:
         if self.n_calls % self.save_freq == 0:
+            if self.save_replay_buffer and getattr(self.model, "replay_buffer", None) is not None:
+                save_atomically(self.model.save_replay_buffer, self._checkpoint_path("replay_buffer_", "pkl"))
             path = self._checkpoint_path(extension="zip")
             save_model_atomically(self.model, path)
             if self.verbose >= 2:
                 print(f"Saving model checkpoint to {path}")
         return True
+
+
+def replay_buffer_path(checkpoint: str | os.PathLike) -> Path:
+    """The replay buffer :class:`AtomicCheckpointCallback` saves beside ``checkpoint``
+    (``<prefix>_<steps>_steps.zip`` -> ``<prefix>_replay_buffer_<steps>_steps.pkl``)."""
+    checkpoint = Path(checkpoint)
+    prefix, _, steps = checkpoint.stem.removesuffix("_steps").rpartition("_")
+    return checkpoint.with_name(f"{prefix}_replay_buffer_{steps}_steps.pkl")

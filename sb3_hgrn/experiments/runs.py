@@ -6,25 +6,30 @@ A run folder (``<root>/<env>/<preset>/seed_<seed>/``) holds::
                         budget, seed, versions)
     tensorboard/        SB3's TensorBoard logs (when tensorboard is installed)
     team_returns.csv    one "r,l,t" row per training team episode, after a "#{json}" line (as SB3's Monitor)
-    checkpoints/        model_<agent-steps>_steps.zip every --save-freq agent-steps (optional)
+    checkpoints/        model_<agent-steps>_steps.zip every --save-freq agent-steps (optional), with
+                        --save-replay-buffer also model_replay_buffer_<agent-steps>_steps.pkl
     model.zip           the final model
     eval.json           the final evaluation; its presence marks the run as complete
     .lock, .lock.pid    the lock of the process working in the folder, and its pid
 
-Every file but ``team_returns.csv`` (appended to row by row) is written atomically. ``--overwrite``
+Every file but ``team_returns.csv`` (appended to row by row) is written atomically; the temporary
+file of a write cut short by a kill is removed when a run starts in the folder again. ``--overwrite``
 moves an old run to ``<folder>.replaced-<UTC time>/`` until the new run has finished.
 """
 
 from __future__ import annotations
 
+import importlib
 import itertools
 import json
 import os
+import pickle
 import re
 import shutil
 import sys
 import time
 import warnings
+from collections.abc import Collection
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +41,8 @@ from sb3_hgrn.common.evaluation import RandomGraphPolicy, evaluate_graph_policy
 from sb3_hgrn.common.files import (
     DamagedModelFileError,
     check_model_file,
+    model_file_path,
+    remove_temporary_files,
     save_model_atomically,
     saved_policy_module,
     write_text_atomically,
@@ -46,6 +53,7 @@ from sb3_hgrn.experiments.callbacks import (
     TEAM_RETURNS_FILE,
     AtomicCheckpointCallback,
     TeamMonitorCallback,
+    replay_buffer_path,
     rewind_team_returns,
 )
 from sb3_hgrn.experiments.config import ConfigError, RunConfig
@@ -277,17 +285,20 @@ def train_run(
     device: str = "auto",
     log_interval: int = 10,
     overwrite: bool = False,
+    save_replay_buffer: bool = False,
 ) -> dict[str, Any]:
     """Train ``config`` into ``folder``, save ``model.zip``, evaluate and write ``eval.json``.
 
     The env and the model are built first, so bad arguments fail before the folder is touched. Then
     :func:`prepare_run_folder` decides: a killed run of the same configuration resumes from its latest
-    checkpoint with an empty replay buffer (``team_returns.csv`` rewound to the checkpoint), a
-    complete run or one of another configuration is refused unless ``overwrite``, which moves the old
-    run aside and removes it once the new run has written its ``eval.json``.
+    checkpoint (``team_returns.csv`` rewound to the checkpoint) with the replay buffer saved beside it,
+    if any, else with an empty one; a complete run or one of another configuration is refused unless
+    ``overwrite``, which moves the old run aside and removes it once the new run has written its
+    ``eval.json``.
 
     :param save_freq: save a checkpoint every this many agent-steps (``None``: no checkpoints).
     :param log_interval: team episodes between log dumps.
+    :param save_replay_buffer: save the replay buffer beside every checkpoint.
     :return: the contents of ``eval.json``.
     """
     folder = Path(folder)
@@ -297,6 +308,7 @@ def train_run(
     model = _new_model(config, env, verbose, tensorboard_log, device)
     with RunLock(folder):
         checkpoint, replaced = prepare_run_folder(folder, config, overwrite)
+        remove_temporary_files(folder)  # of a killed write: the lock says that no other process writes
         if replaced is not None and verbose:
             print(f"Moved the old run aside to {replaced} (removed once this run has finished)")
         if checkpoint is not None:
@@ -304,15 +316,26 @@ def train_run(
                 checkpoint, env=env, device=device, tensorboard_log=tensorboard_log, verbose=verbose
             )
             rewind_team_returns(folder / TEAM_RETURNS_FILE, model.num_timesteps)
+            replay = _load_replay_buffer(model, replay_buffer_path(checkpoint))
             if verbose:
-                print(f"Resuming from {checkpoint} ({model.num_timesteps} agent-steps done)")
+                print(
+                    f"Resuming from {checkpoint} ({model.num_timesteps} agent-steps done, "
+                    f"{'its' if replay else 'an empty'} replay buffer)"
+                )
         config.extra = _run_figures(config, env, model)
         write_text_atomically(folder / CONFIG_FILE, yaml.safe_dump(config.to_dict(), sort_keys=False))
 
         remaining = max(0, config.total_timesteps - model.num_timesteps)
         model.learn(
             remaining,
-            callback=_callbacks(folder, config, env, save_freq, resumed=checkpoint is not None),
+            callback=_callbacks(
+                folder,
+                config,
+                env,
+                save_freq,
+                resumed=checkpoint is not None,
+                save_replay_buffer=save_replay_buffer,
+            ),
             log_interval=log_interval,
             progress_bar=progress_bar,
             reset_num_timesteps=checkpoint is None,
@@ -342,18 +365,40 @@ def train_run(
     return results
 
 
+def _load_replay_buffer(model: GraphOffPolicyAlgorithm, path: Path) -> bool:
+    """Load the replay buffer at ``path`` into ``model``; whether it was loaded (one that is damaged or
+    does not fit is skipped with a warning, leaving the model's empty buffer)."""
+    if not path.is_file():
+        return False
+    try:
+        model.load_replay_buffer(path)
+    except (pickle.UnpicklingError, EOFError, AttributeError, TypeError, ValueError) as error:
+        warnings.warn(f"Skipping the replay buffer {path}, which cannot be loaded: {error}", stacklevel=2)
+        return False
+    return True
+
+
 def _callbacks(
-    folder: Path, config: RunConfig, env: GraphVecEnv, save_freq: int | None, resumed: bool
+    folder: Path,
+    config: RunConfig,
+    env: GraphVecEnv,
+    save_freq: int | None,
+    resumed: bool,
+    save_replay_buffer: bool,
 ) -> list[BaseCallback]:
     """The training callbacks of a run: ``team_returns.csv`` (continued when ``resumed``) and, with
-    ``save_freq``, atomic checkpoints every ``save_freq`` agent-steps."""
+    ``save_freq``, atomic checkpoints every ``save_freq`` agent-steps (with the replay buffer when
+    ``save_replay_buffer``)."""
     callbacks: list[BaseCallback] = [
         TeamMonitorCallback(str(folder / TEAM_RETURNS_FILE), env_id=config.env, append=resumed)
     ]
     if save_freq:
         callbacks.append(
             AtomicCheckpointCallback(
-                max(1, save_freq // env.num_envs), str(folder / CHECKPOINT_DIR), name_prefix="model"
+                max(1, save_freq // env.num_envs),
+                str(folder / CHECKPOINT_DIR),
+                name_prefix="model",
+                save_replay_buffer=save_replay_buffer,
             )
         )
     return callbacks
@@ -549,8 +594,9 @@ def algorithm_of_zip(path: Path) -> type[GraphOffPolicyAlgorithm]:
     raise ConfigError(f"{path} was not saved by an sb3_hgrn algorithm (policy module {module!r}).")
 
 
-def locate_run(path: str | os.PathLike, env: str | None = None) -> tuple[Path, RunConfig]:
-    """The model file and run configuration of ``path`` (a run folder, its ``model.zip`` or a checkpoint).
+def locate_run(path: str | os.PathLike, env: str | None = None) -> tuple[Path, RunConfig, Path | None]:
+    """The model file, run configuration and run folder (the one holding ``config.yml``, ``None``
+    without one) of ``path`` (a run folder, its ``model.zip`` or a checkpoint).
 
     A run folder gives its ``model.zip``, else its latest checkpoint; damaged ones are skipped with a
     warning. A damaged file given by name raises :class:`ConfigError` ("damaged model file"). A bare
@@ -580,13 +626,38 @@ def locate_run(path: str | os.PathLike, env: str | None = None) -> tuple[Path, R
             config = RunConfig.from_dict(data)
             if env is not None and env != config.env:
                 raise ConfigError(f"{path} was trained on {config.env}, not {env}.")
-            return model_path, config
+            return model_path, config, folder
     if env is None:
         raise ConfigError(f"No {CONFIG_FILE} beside {path}: pass --env to say which env it runs on.")
     from sb3_hgrn.experiments.config import check_env_name
 
     check_env_name(env)
-    return model_path, RunConfig(env, "", "", 0, {}, 1, 1, 0, 10, [], False, {})
+    return model_path, RunConfig(env, "", "", 0, {}, 1, 1, 0, 10, [], False, {}), None
+
+
+def check_stored_model_paths(
+    config: RunConfig, folder: Path, given: Collection[str] = (), trust_config: bool = False
+) -> None:
+    """Raise :class:`ConfigError` when the ``config.yml`` of the run in ``folder`` makes its env load
+    a saved model (e.g. a Pursuit controller) from outside the folder.
+
+    Loading a model zip unpickles it and so can run code: a run's ``config.yml`` may only point to
+    models inside its own folder, unless ``trust_config``. Env arguments in ``given`` (passed by the
+    user, over the stored ones) are not checked. Which env arguments name models the env module says
+    with ``model_paths(env_kwargs) -> {argument: path}``.
+    """
+    model_paths = getattr(importlib.import_module(f"sb3_hgrn.envs.{config.env}"), "model_paths", None)
+    if trust_config or model_paths is None:
+        return
+    inside = folder.resolve()
+    for name, value in model_paths(config.env_kwargs).items():
+        if name not in given and not model_file_path(value).resolve().is_relative_to(inside):
+            raise ConfigError(
+                f"{folder / CONFIG_FILE} sets {name}={value!r}, a model outside the run folder. Loading a "
+                "model file can run code, so a run's config may only name models inside its own folder. "
+                f"If you trust this config, pass --trust-config (trust_config=True), or give the model "
+                f"yourself with --env-param {name}=PATH."
+            )
 
 
 def load_run(
@@ -595,10 +666,17 @@ def load_run(
     n_envs: int | None = None,
     seed: int | None = None,
     device: str = "auto",
+    trust_config: bool = False,
     **env_kwargs: Any,
 ) -> tuple[GraphOffPolicyAlgorithm, GraphVecEnv, RunConfig]:
-    """Load a saved run's model onto a fresh copy of its env (``env_kwargs`` over the run's)."""
-    model_path, config = locate_run(path, env)
+    """Load a saved run's model onto a fresh copy of its env (``env_kwargs`` over the run's).
+
+    Models the run's ``config.yml`` names for its env are loaded only from inside the run folder
+    unless ``trust_config`` (see :func:`check_stored_model_paths`).
+    """
+    model_path, config, folder = locate_run(path, env)
+    if folder is not None:
+        check_stored_model_paths(config, folder, env_kwargs, trust_config)
     algorithm = PRESETS[config.preset][0] if config.preset in PRESETS else algorithm_of_zip(model_path)
     vec_env = make_env(
         config,
@@ -617,10 +695,13 @@ def evaluate_run(
     env: str | None = None,
     n_envs: int | None = None,
     seed: int | None = None,
+    trust_config: bool = False,
     **env_kwargs: Any,
 ) -> dict[str, Any]:
     """Evaluate a saved run (see :func:`load_run`); ``epsilon`` mixes in random valid actions."""
-    model, vec_env, _ = load_run(path, env=env, n_envs=n_envs, seed=seed, device="cpu", **env_kwargs)
+    model, vec_env, _ = load_run(
+        path, env=env, n_envs=n_envs, seed=seed, device="cpu", trust_config=trust_config, **env_kwargs
+    )
     policy = EpsilonRandomPolicy(model, epsilon, seed=seed) if epsilon > 0 else model
     try:
         return evaluate_model(policy, vec_env, n_episodes, deterministic)
@@ -636,17 +717,26 @@ def render_run(
     deterministic: bool = False,
     env: str | None = None,
     seed: int | None = None,
+    trust_config: bool = False,
     **env_kwargs: Any,
 ) -> int:
     """Run one episode of copy 0 with ``render_mode="rgb_array"`` and write the frames as a GIF.
 
     :param steps: stop after this many steps (default: the whole episode).
+    :param trust_config: see :func:`load_run`.
     :return: the number of frames written.
     """
     from PIL import Image
 
     model, vec_env, _ = load_run(
-        path, env=env, n_envs=1, seed=seed, device="cpu", render_mode="rgb_array", **env_kwargs
+        path,
+        env=env,
+        n_envs=1,
+        seed=seed,
+        device="cpu",
+        render_mode="rgb_array",
+        trust_config=trust_config,
+        **env_kwargs,
     )
     try:
         observations = vec_env.reset()
