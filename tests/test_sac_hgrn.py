@@ -133,6 +133,8 @@ def test_bad_arguments():
         quick_model(bit_vec_env(n_envs=1), behaviour_policy="random")
     with pytest.raises(ValueError, match="actor_steps"):
         quick_model(bit_vec_env(n_envs=1), actor_steps=0)
+    with pytest.raises(ValueError, match="actor_steps"):
+        quick_model(bit_vec_env(n_envs=1), actor_steps=2.5)
 
 
 @pytest.mark.parametrize("actor_steps", [1, 3])

@@ -126,8 +126,8 @@ class SACHGRN(GraphOffPolicyAlgorithm):
             raise ValueError(
                 f"behaviour_policy must be one of {BEHAVIOUR_POLICIES}, got {behaviour_policy!r}."
             )
-        if actor_steps < 1:
-            raise ValueError(f"actor_steps must be >= 1, got {actor_steps}.")
+        if not isinstance(actor_steps, int) or actor_steps < 1:
+            raise ValueError(f"actor_steps must be an integer >= 1, got {actor_steps!r}.")
         super().__init__(
             policy,
             env,
