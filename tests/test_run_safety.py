@@ -154,9 +154,12 @@ def test_resume_skips_a_damaged_checkpoint(root, capsys):
     cut_short(folder / "checkpoints" / "model_200_steps.zip")
     leftover = folder / "checkpoints" / ".model_300_steps.zip.4242.tmp"  # of a write killed midway
     leftover.write_bytes(b"PK")
+    users_file = folder / ".notes.tmp"  # a hidden file of the user's, not of an atomic write
+    users_file.write_text("keep")
     with pytest.warns(UserWarning, match="Skipping damaged model file .*model_200_steps.zip"):
         assert main(train_args(root)) == 0
     assert not leftover.exists()
+    assert users_file.read_text() == "keep"
     results = json.loads((folder / "eval.json").read_text())
     assert results["resumed_from"] == "model_100_steps.zip" and results["agent_steps"] == 200
 

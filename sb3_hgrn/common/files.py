@@ -11,6 +11,7 @@ import contextlib
 import csv
 import json
 import os
+import re
 import zipfile
 import zlib
 from collections.abc import Callable, Iterator, Sequence
@@ -55,7 +56,8 @@ def remove_temporary_files(folder: str | os.PathLike) -> int:
 
     :return: the number of files removed.
     """
-    leftovers = list(Path(folder).rglob(f".*{TEMPORARY_SUFFIX}"))
+    pattern = re.compile(rf"\..+\.\d+{re.escape(TEMPORARY_SUFFIX)}")  # .<name>.<pid>.tmp only
+    leftovers = [path for path in Path(folder).rglob(f".*{TEMPORARY_SUFFIX}") if pattern.fullmatch(path.name)]
     for path in leftovers:
         path.unlink(missing_ok=True)
     return len(leftovers)
