@@ -213,7 +213,12 @@ def _add_tune_parser(commands: argparse._SubParsersAction) -> None:
     tune.add_argument("--env", required=True, help=f"one of {', '.join(REGISTERED_ENVS)}")
     tune.add_argument("--preset", required=True, help="a name of sb3_hgrn.presets.PRESETS (docs/presets.md)")
     tune.add_argument("--budget", default="cpu", help=f"config budget: {', '.join(BUDGETS)} (default cpu)")
-    tune.add_argument("--seed", type=int, default=0, help="seed of every trial's run and of the sampler")
+    tune.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="seed of every trial's run (and of the sampler without --sampler-seed)",
+    )
     tune.add_argument(
         "--timesteps", type=_positive_int, help="agent-steps of training per trial (default: the budget's)"
     )
@@ -406,7 +411,7 @@ def _tune(args: argparse.Namespace) -> int:
     warmup = args.n_warmup_steps
     if warmup is None:
         warmup = setup.run_config({}).total_timesteps // 3
-    study_name = args.study_name or f"{args.env}_{args.preset}_{args.budget}"
+    study_name = args.study_name or setup.default_study_name()
     folder = Path(args.folder) / study_name
     study = tune.run_study(
         setup,

@@ -305,6 +305,10 @@ class TuneSetup:
             env_params=self.env_params,
         )
 
+    def default_study_name(self) -> str:
+        """``<env>_<preset>_<budget>``."""
+        return f"{self.env}_{self.preset}_{self.budget}"
+
     def evaluation_interval(self, total_timesteps: int) -> int:
         """Agent-steps between evaluations of a trial training ``total_timesteps``."""
         return self.eval_freq if self.eval_freq is not None else max(1, total_timesteps // 5)
@@ -511,11 +515,13 @@ def run_study(
         )
     _set_optuna_verbosity(verbose)
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    storage = storage or default_storage(folder)
-    study_name = study_name or f"{setup.env}_{setup.preset}_{setup.budget}"
+    if storage is None:
+        folder.mkdir(parents=True, exist_ok=True)
+        storage = default_storage(folder)
+    study_name = study_name or setup.default_study_name()
     pruner = pruner if pruner is not None else make_pruner("median", n_startup_trials)
     open_study(setup, storage, study_name)  # created (or checked) before any worker joins it
+    folder.mkdir(parents=True, exist_ok=True)
     shares = [n_trials // n_jobs + (worker < n_trials % n_jobs) for worker in range(n_jobs)]
     jobs = [
         (
