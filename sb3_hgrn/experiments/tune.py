@@ -507,7 +507,8 @@ def run_study(
     :param pruner: default the median pruner of :func:`make_pruner`.
     :param n_startup_trials: random trials before TPE samples from its model.
     :param sampler_seed: default ``setup.seed``; commands that share a study from several machines
-        should each have their own, or their random startup trials repeat one another.
+        should each have their own, spaced by at least ``n_jobs``, or their random startup
+        trials repeat one another.
     """
     if n_trials < 1 or n_jobs < 1 or threads < 1:
         raise ConfigError(
