@@ -8,6 +8,7 @@ Examples::
     sb3-hgrn render runs/surviving_v0/soft_hgrn/seed_0 --out episode.gif
     sb3-hgrn reproduce table1 --budget cpu --seeds 3 --jobs 2
     sb3-hgrn figure ctc --budget cpu --seeds 3 --jobs 2
+    sb3-hgrn tune --env surviving_v0 --preset soft_hgrn --budget cpu --n-trials 50 --n-jobs 2
 
 See docs/cli.md.
 """
@@ -17,6 +18,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 from sb3_hgrn.common.vec_env import REGISTERED_ENVS
 from sb3_hgrn.experiments.config import BUDGETS, ConfigError, parse_assignments
@@ -55,7 +57,7 @@ def _add_trust_config(parser: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with its subcommands ``train``, ``evaluate``, ``render``, ``reproduce``,
-    ``figure``."""
+    ``figure``, ``tune``."""
     parser = argparse.ArgumentParser(
         prog="sb3-hgrn",
         description="Train, evaluate and render sb3_hgrn runs; reproduce the paper's Table 1 and figures "
@@ -85,6 +87,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="algorithm argument over the config (e.g. batch_size=64 policy_kwargs.hidden_dim=32)",
     )
     _add_env_params(train)
+    train.add_argument(
+        "--config",
+        metavar="FILE",
+        help="YAML config of one's own over the packaged one, e.g. the best.yml of tune (docs/cli.md)",
+    )
     train.add_argument(
         "--save-freq", type=_positive_int, help="save a checkpoint every this many agent-steps"
     )
@@ -196,7 +203,65 @@ def build_parser() -> argparse.ArgumentParser:
     figure.add_argument(
         "--save-freq", type=_positive_int, help="checkpoint every this many agent-steps (killed runs resume)"
     )
+    _add_tune_parser(commands)
     return parser
+
+
+def _add_tune_parser(commands: argparse._SubParsersAction) -> None:
+    """The ``tune`` subcommand: an Optuna search of one preset's hyperparameters on one env."""
+    tune = commands.add_parser("tune", help="search the hyperparameters of one preset on one env (Optuna)")
+    tune.add_argument("--env", required=True, help=f"one of {', '.join(REGISTERED_ENVS)}")
+    tune.add_argument("--preset", required=True, help="a name of sb3_hgrn.presets.PRESETS (docs/presets.md)")
+    tune.add_argument("--budget", default="cpu", help=f"config budget: {', '.join(BUDGETS)} (default cpu)")
+    tune.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="seed of every trial's run (and of the sampler without --sampler-seed)",
+    )
+    tune.add_argument(
+        "--timesteps", type=_positive_int, help="agent-steps of training per trial (default: the budget's)"
+    )
+    tune.add_argument(
+        "--param",
+        nargs="+",
+        action="extend",
+        default=[],
+        metavar="KEY=VALUE",
+        help="fixed algorithm argument",
+    )
+    _add_env_params(tune)
+    tune.add_argument("--search-space", metavar="FILE", help="YAML search space (default: the packaged one)")
+    tune.add_argument(
+        "--n-trials", type=_positive_int, default=10, help="trials this command runs (default 10)"
+    )
+    tune.add_argument("--n-jobs", type=_positive_int, default=1, help="worker processes (default 1)")
+    tune.add_argument(
+        "--n-startup-trials", type=_positive_int, default=5, help="random trials before TPE (default 5)"
+    )
+    tune.add_argument(
+        "--sampler-seed",
+        type=int,
+        help="seed of the TPE sampler (default --seed; one per machine sharing a study)",
+    )
+    tune.add_argument("--pruner", default="median", help="median (default), halving or none")
+    tune.add_argument(
+        "--n-warmup-steps",
+        type=int,
+        help="agent-steps of a trial before the median pruner may stop it (default: a third of training)",
+    )
+    tune.add_argument(
+        "--eval-freq",
+        type=_positive_int,
+        help="agent-steps between evaluations (default: a fifth of training)",
+    )
+    tune.add_argument("--eval-episodes", type=_positive_int, default=4, help="team episodes per evaluation")
+    tune.add_argument("--storage", help="Optuna storage URL (default sqlite:///<tune folder>/study.db)")
+    tune.add_argument("--study-name", help="default <env>_<preset>_<budget>")
+    tune.add_argument("--folder", default="tune", help="root of tune folders (<folder>/<study name>)")
+    tune.add_argument("--threads", type=_positive_int, default=1, help="torch threads per worker (default 1)")
+    tune.add_argument("--device", default="auto", help="torch device (default auto)")
+    tune.add_argument("--verbose", type=int, default=1, help="0: quiet, 1: Optuna's log and each evaluation")
 
 
 def _set_threads(threads: int | None) -> None:
@@ -218,6 +283,7 @@ def _train(args: argparse.Namespace) -> int:
         args.timesteps,
         params=parse_assignments(args.param, "--param"),
         env_params=parse_assignments(args.env_param, "--env-param"),
+        config_file=args.config,
     )
     _set_threads(args.threads)
     folder = run_folder(args.folder, config.env, config.preset, config.seed)
@@ -324,6 +390,47 @@ def _figure(args: argparse.Namespace) -> int:
     return _report_failures(failed)
 
 
+def _tune(args: argparse.Namespace) -> int:
+    try:
+        from sb3_hgrn.experiments import tune
+    except ImportError as error:
+        raise ConfigError(f"tune needs optuna ({error}): pip install 'sb3_hgrn[tune]'.") from error
+
+    setup = tune.TuneSetup(
+        args.env,
+        args.preset,
+        args.budget,
+        args.seed,
+        tune.load_search_space(args.preset, args.search_space),
+        params=parse_assignments(args.param, "--param"),
+        env_params=parse_assignments(args.env_param, "--env-param"),
+        timesteps=args.timesteps,
+        eval_freq=args.eval_freq,
+        eval_episodes=args.eval_episodes,
+    )
+    warmup = args.n_warmup_steps
+    if warmup is None:
+        warmup = setup.run_config({}).total_timesteps // 3
+    study_name = args.study_name or setup.default_study_name()
+    folder = Path(args.folder) / study_name
+    study = tune.run_study(
+        setup,
+        folder,
+        args.n_trials,
+        n_jobs=args.n_jobs,
+        storage=args.storage,
+        study_name=study_name,
+        pruner=tune.make_pruner(args.pruner, args.n_startup_trials, warmup),
+        n_startup_trials=args.n_startup_trials,
+        sampler_seed=args.sampler_seed,
+        threads=args.threads,
+        device=args.device,
+        verbose=args.verbose,
+    )
+    print(tune.summary(study, folder))
+    return 0
+
+
 def _report_failures(failed: list) -> int:
     """Print the runs that failed; the exit status: 1 if any failed, else 0."""
     if failed:
@@ -337,6 +444,7 @@ COMMANDS = {
     "render": _render,
     "reproduce": _reproduce,
     "figure": _figure,
+    "tune": _tune,
 }
 
 

@@ -21,14 +21,21 @@ A config file holds (all sections optional except ``budgets``)::
 Algorithm keyword arguments are merged in that order (``policy_kwargs`` key by key): the preset,
 top-level ``default``, top-level preset section, the budget's ``default``, the budget's preset
 section, then ``--param`` overrides from the command line.
+
+``train --config FILE`` reads a file of the same format in which every section is optional (e.g. the
+``best.yml`` that ``tune`` writes): its sections are merged over the packaged file's, in the same
+order (so even its top-level preset section wins over the packaged budget sections), and ``--param``
+and ``--env-param`` still come last. Its budget fields replace the packaged budget's.
 """
 
 from __future__ import annotations
 
 import ast
 import inspect
+import os
 from dataclasses import asdict, dataclass, field
 from importlib import resources
+from pathlib import Path
 from typing import Any
 
 import yaml
@@ -77,18 +84,43 @@ def load_hyperparams(env: str) -> dict[str, Any]:
     text = (resources.files("sb3_hgrn") / "hyperparams" / f"{env}.yml").read_text(encoding="utf-8")
     config = yaml.safe_load(text) or {}
     where = f"hyperparams/{env}.yml"
+    _check_config(config, where, complete=True)
+    return config
+
+
+def load_config_file(path: str | os.PathLike) -> dict[str, Any]:
+    """Read and check a config file of one's own (``train --config``): the format of the packaged
+    files, with every section optional."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except OSError as error:
+        raise ConfigError(f"Cannot read the config file {path}: {error.strerror}.") from error
+    try:
+        config = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        raise ConfigError(f"The config file {path} is not valid YAML: {error}") from error
+    config = {} if config is None else config
+    _check_config(config, str(path), complete=False)
+    return config
+
+
+def _check_config(config: Any, where: str, complete: bool) -> None:
+    """Check the sections of a config file; a ``complete`` one (a packaged file) defines every budget,
+    each with ``n_envs``, ``total_timesteps`` and ``eval_episodes``."""
     _check_sections(config, {"env_kwargs", "budgets"}, where)
     budgets = config.get("budgets") or {}
-    for budget in BUDGETS:
+    if not isinstance(budgets, dict):
+        raise ConfigError(f"{where}: budgets must be a mapping of budgets, got {type(budgets).__name__}.")
+    for budget in BUDGETS if complete else ():
         if budget not in budgets:
             raise ConfigError(f"{where} has no budget {budget!r}.")
     for budget, section in budgets.items():
         check_budget_name(budget)
+        section = {} if section is None else section
         _check_sections(section, BUDGET_FIELDS, f"{where} budget {budget}")
         for key in ("n_envs", "total_timesteps", "eval_episodes"):
-            if not isinstance(section.get(key), int) or section[key] < 1:
+            if (complete or key in section) and (not isinstance(section.get(key), int) or section[key] < 1):
                 raise ConfigError(f"{where} budget {budget}: {key} must be a positive integer.")
-    return config
 
 
 def _check_sections(section: Any, fields: set[str], where: str) -> None:
@@ -134,11 +166,16 @@ def parse_assignments(items: list[str] | None, option: str = "--param") -> dict[
             raise ConfigError(
                 f"Malformed {option} {item!r}: expected key=value (e.g. {option} batch_size=64)."
             )
-        value: Any = parse_value(text.strip())
-        for part in reversed(path[1:]):
-            value = {part.strip(): value}
-        result = merge(result, {path[0].strip(): value})
+        result = merge(result, nest(".".join(part.strip() for part in path), parse_value(text.strip())))
     return result
+
+
+def nest(key: str, value: Any) -> dict[str, Any]:
+    """``{key: value}``, a dotted ``key`` giving nested mappings: ``nest("a.b", 1) == {"a": {"b": 1}}``."""
+    parts = key.split(".")
+    for part in reversed(parts[1:]):
+        value = {part: value}
+    return {parts[0]: value}
 
 
 @dataclass
@@ -198,27 +235,32 @@ def resolve_config(
     timesteps: int | None = None,
     params: dict[str, Any] | None = None,
     env_params: dict[str, Any] | None = None,
+    config_file: str | os.PathLike | None = None,
 ) -> RunConfig:
     """The configuration of one run of ``preset`` on ``env`` at ``budget``.
 
     :param timesteps: agent-steps of training instead of the budget's ``total_timesteps``.
-    :param params: algorithm keyword arguments over the config file's (``--param``).
-    :param env_params: env keyword arguments over the config file's (``--env-param``).
+    :param params: algorithm keyword arguments over the config files' (``--param``).
+    :param env_params: env keyword arguments over the config files' (``--env-param``).
+    :param config_file: a config file of one's own merged over the packaged one (``--config``, see
+        :func:`load_config_file`).
     """
     check_env_name(env)
     check_preset_name(preset)
     check_budget_name(budget)
-    config = load_hyperparams(env)
-    section = config["budgets"][budget]
+    configs = [load_hyperparams(env)]
+    if config_file is not None:
+        configs.append(load_config_file(config_file))
     hyperparams: dict[str, Any] = {}
-    for layer in (config.get("default"), config.get(preset), section.get("default"), section.get(preset)):
-        hyperparams = merge(hyperparams, layer or {})
+    for config in configs:
+        section = _budget_section(config, budget)
+        for layer in (config.get("default"), config.get(preset), section.get("default"), section.get(preset)):
+            hyperparams = merge(hyperparams, layer or {})
     hyperparams = merge(hyperparams, params or {})
     check_params(preset, hyperparams)
     if timesteps is not None and timesteps < 1:
         raise ConfigError(f"--timesteps must be a positive number of agent-steps, got {timesteps}.")
-    total_timesteps = timesteps if timesteps is not None else section["total_timesteps"]
-    return _budget_config(config, env, preset, budget, seed, total_timesteps, hyperparams, env_params)
+    return _budget_config(configs, env, preset, budget, seed, timesteps, hyperparams, env_params)
 
 
 def random_policy_config(env: str, budget: str = "cpu", seed: int = 0) -> RunConfig:
@@ -226,25 +268,39 @@ def random_policy_config(env: str, budget: str = "cpu", seed: int = 0) -> RunCon
     no training and no algorithm arguments; the anchor row of the Table 1 sweep."""
     check_env_name(env)
     check_budget_name(budget)
-    return _budget_config(load_hyperparams(env), env, RANDOM_POLICY, budget, seed, 0, {}, None)
+    return _budget_config([load_hyperparams(env)], env, RANDOM_POLICY, budget, seed, 0, {}, None)
+
+
+def _budget_section(config: dict[str, Any], budget: str) -> dict[str, Any]:
+    """The ``budget`` section of a config file (empty if it has none)."""
+    return (config.get("budgets") or {}).get(budget) or {}
 
 
 def _budget_config(
-    config: dict[str, Any],
+    configs: list[dict[str, Any]],
     env: str,
     preset: str,
     budget: str,
     seed: int,
-    total_timesteps: int,
+    total_timesteps: int | None,
     hyperparams: dict[str, Any],
     env_params: dict[str, Any] | None,
 ) -> RunConfig:
-    """A :class:`RunConfig` with the env sizes and evaluation settings of the ``budget`` section of
-    ``env``'s config file ``config``."""
-    section = config["budgets"][budget]
-    env_kwargs = merge(
-        merge(config.get("env_kwargs") or {}, section.get("env_kwargs") or {}), env_params or {}
-    )
+    """A :class:`RunConfig` with the env sizes and evaluation settings of the ``budget`` sections of
+    ``env``'s config files ``configs`` (the packaged one first, each merged over the ones before).
+
+    :param total_timesteps: agent-steps of training (``None``: the budget's ``total_timesteps``).
+    """
+    section: dict[str, Any] = {}
+    env_kwargs: dict[str, Any] = {}
+    for config in configs:
+        budget_section = _budget_section(config, budget)
+        section.update({key: value for key, value in budget_section.items() if key in BUDGET_FIELDS})
+        env_kwargs = merge(env_kwargs, config.get("env_kwargs") or {})
+        env_kwargs = merge(env_kwargs, budget_section.get("env_kwargs") or {})
+    env_kwargs = merge(env_kwargs, env_params or {})
+    if total_timesteps is None:
+        total_timesteps = section["total_timesteps"]
     return RunConfig(
         env=env,
         preset=preset,

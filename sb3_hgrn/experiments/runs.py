@@ -255,7 +255,7 @@ def make_env(config: RunConfig, n_envs: int, seed: int | None, **env_kwargs: Any
         raise ConfigError(f"Cannot build {config.env} with env arguments {kwargs}: {error}") from error
 
 
-def _new_model(
+def new_model(
     config: RunConfig, env: GraphVecEnv, verbose: int, tensorboard_log: str | None, device: str
 ) -> GraphOffPolicyAlgorithm:
     """A fresh model of ``config``; bad algorithm arguments raise :class:`ConfigError`."""
@@ -305,7 +305,7 @@ def train_run(
     start = time.time()
     env = make_env(config, config.n_envs, config.seed)
     tensorboard_log = _tensorboard_dir(folder, verbose)
-    model = _new_model(config, env, verbose, tensorboard_log, device)
+    model = new_model(config, env, verbose, tensorboard_log, device)
     with RunLock(folder):
         checkpoint, replaced = prepare_run_folder(folder, config, overwrite)
         remove_temporary_files(folder)  # of a killed write: the lock says that no other process writes
