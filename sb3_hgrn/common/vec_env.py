@@ -114,7 +114,10 @@ def _check_groups(env: GraphParallelEnv) -> None:
         if not isinstance(group.action_space, gym.spaces.Discrete):
             raise TypeError(f"Graph envs need a Discrete action space, got {group.action_space}.")
         if group.action_space.n > env.shared_action_space.n:
-            raise ValueError(f"Group {group.name!r} has more actions than the env's shared action space.")
+            raise ValueError(
+                f"Group {group.name!r} has {group.action_space.n} actions, more than the env's shared "
+                f"spaces hold ({env.shared_action_space})."
+            )
         group_shape = group.observation_space.shape
         if len(shape) == 1 and (len(group_shape) != 1 or group_shape[0] > shape[0]):
             raise ValueError(
