@@ -78,7 +78,7 @@ def test_trains_on_flattened_views(algorithm):
     before = [encoder.weight.detach().clone() for encoder in encoders]
     assert {encoder.in_features for encoder in encoders} == {int(np.prod(VIEW))}
     assert all(network.features_extractor is None for network in networks(model))
-    model.learn(400)
+    model.learn(300)
     buffer = model.replay_buffer
     assert buffer.observations.shape[1:] == (2, 4, *VIEW) and buffer.observations.dtype == np.uint8
     stored = buffer.observations[: buffer.pos].reshape(-1, *VIEW)
@@ -101,7 +101,7 @@ def test_custom_extractor_feeds_every_network_and_learns(algorithm):
         assert network.encoder[0][0].in_features == 6
     assert len({id(network.features_extractor[0]) for network in networks(model)}) == len(networks(model))
     before = [extractor_parameters(network) for network in trained_networks(model)]
-    model.learn(400)
+    model.learn(300)
     for network, parameters in zip(trained_networks(model), before, strict=True):
         assert network.features_extractor[0].input_shapes == {VIEW}
         changed = [not th.equal(now, then) for now, then in zip(network.features_extractor.parameters(),
@@ -196,7 +196,7 @@ def test_heterogeneous_groups_get_one_extractor_each():
     before = [
         [parameter.detach().clone() for parameter in extractor.parameters()] for extractor in extractors
     ]
-    model.learn(400)
+    model.learn(300)
     for extractor, parameters in zip(extractors, before, strict=True):
         assert extractor.input_shapes == {(2,)}  # the padded shared observation
         assert any(
