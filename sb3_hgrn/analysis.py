@@ -67,7 +67,7 @@ def forward_with_internals(
     The network needs graph attention (``communication`` ``"hgat"`` or ``"gat"``) and its GRU.
 
     :param network: the HGRN.
-    :param obs: ``(batch, n_agents, obs_dim)`` float observations.
+    :param obs: ``(batch, n_agents, *obs_shape)`` float observations.
     :param neighbors: ``(batch, n_agents, K)`` agent indices, ``-1`` = no entry.
     :param hidden: ``(batch, n_agents, hidden_dim)`` recurrent state fed in.
     :param groups: ``(batch, n_agents)`` group ids (needed with several groups).
@@ -78,7 +78,7 @@ def forward_with_internals(
         raise ValueError("forward_with_internals needs a recurrent network (a GRU).")
     batch, n_agents = obs.shape[:2]
     graph = GraphBatch(neighbors, groups, network.n_groups)
-    encoded = network.encoder(obs, graph=graph)
+    encoded = network.encode(obs, graph)
     hop1, attention1 = network.comm1(encoded, graph, return_attention=True)
     hop2, attention2 = network.comm2(hop1, graph, return_attention=True)
     x = torch.cat([encoded, hop1, hop2], dim=-1).reshape(batch * n_agents, -1)

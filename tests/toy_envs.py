@@ -163,6 +163,49 @@ class SignalReaderEnv(GraphParallelEnv):
         return self._graph.copy()
 
 
+class CornerViewEnv(GraphParallelEnv):
+    """Agents on a ring, each with a channel-last ``(size, size, 3)`` uint8 view: a 1 in channel 0
+    at one of the view's four corners (drawn afresh every step), random bits in channel 1, zeros in
+    channel 2. An agent earns 1 for naming its corner (actions 0..3: top-left, top-right,
+    bottom-left, bottom-right); guessing earns 0.25 per agent-step."""
+
+    metadata = {"render_modes": [], "name": "corner_view"}
+
+    def __init__(self, n_agents: int = 4, size: int = 5, max_cycles: int = 8):
+        self.possible_agents = [f"agent_{i}" for i in range(n_agents)]
+        self.shared_observation_space = gym.spaces.Box(0, 1, shape=(size, size, 3), dtype=np.uint8)
+        self.shared_action_space = gym.spaces.Discrete(4)
+        self.max_neighbors = 2
+        self.max_cycles = max_cycles
+        self.render_mode = None
+        self._rng = np.random.default_rng()
+        self._graph = np.stack([np.arange(n_agents), (np.arange(n_agents) - 1) % n_agents], axis=1)
+
+    def _draw(self) -> np.ndarray:
+        size = self.shared_observation_space.shape[0]
+        self._corners = self._rng.integers(0, 4, size=self.n_agents)
+        views = np.zeros((self.n_agents, size, size, 3), dtype=np.uint8)
+        rows, columns = (self._corners // 2) * (size - 1), (self._corners % 2) * (size - 1)
+        views[np.arange(self.n_agents), rows, columns, 0] = 1
+        views[..., 1] = self._rng.integers(0, 2, size=(self.n_agents, size, size))
+        return views
+
+    def reset_arrays(self, seed=None, options=None):
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+        self._t = 0
+        return self._draw()
+
+    def step_arrays(self, actions):
+        rewards = (actions == self._corners).astype(np.float32)
+        self._t += 1
+        done = np.full(self.n_agents, self._t >= self.max_cycles)
+        return self._draw(), rewards, np.zeros(self.n_agents, dtype=bool), done, {}
+
+    def neighbors(self):
+        return self._graph.copy()
+
+
 class _IndependentAgentsEnv(GraphParallelEnv):
     """Base of the single-skill tasks below: agents that do not interact (each lists only itself)."""
 

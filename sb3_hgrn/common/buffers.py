@@ -14,11 +14,11 @@ from stable_baselines3.common.buffers import BaseBuffer
 class GraphSamples(NamedTuple):
     """A batch of ``batch`` graphs of ``n_agents`` agents each."""
 
-    observations: th.Tensor  # (batch, n_agents, obs_dim) float32
+    observations: th.Tensor  # (batch, n_agents, *obs_shape) float32
     neighbors: th.Tensor  # (batch, n_agents, max_neighbors) int64, -1 = none
     actions: th.Tensor  # (batch, n_agents) int64
     rewards: th.Tensor  # (batch, n_agents) float32
-    next_observations: th.Tensor  # (batch, n_agents, obs_dim) float32
+    next_observations: th.Tensor  # (batch, n_agents, *obs_shape) float32
     next_neighbors: th.Tensor  # (batch, n_agents, max_neighbors) int64
     terminated: th.Tensor  # (batch, n_agents) float32, 1 where the episode really ended (not time-outs)
     hidden: th.Tensor  # (batch, n_agents, state_dim) recurrent state fed in (zero at episode starts)
@@ -53,7 +53,8 @@ class GraphReplayBuffer(BaseBuffer):
     the buffer keeps ``buffer_size // n_envs`` steps of all ``n_envs = n_copies * n_agents`` slots.
     A sample draws (step, copy) pairs, so ``batch_size`` counts graphs.
 
-    Memory is kept small: observations keep the env's own dtype (int8 for Surviving), neighbour
+    Memory is kept small: observations keep the env's own dtype (int8 for Surviving) and shape (any
+    ``obs_shape``; the learner's networks flatten or encode them), neighbour
     indices use the smallest integer type for the agent count, the recurrent state is stored once
     per step (by default in float16): row ``t`` holds the state carried into step ``t`` and a flag
     marking episode starts, and the state produced by step ``t`` is the one carried into ``t + 1``.
@@ -133,7 +134,7 @@ class GraphReplayBuffer(BaseBuffer):
     ) -> None:
         """Store one step of all slots.
 
-        :param obs: ``{"obs": (n_envs, obs_dim), "neighbors": (n_envs, max_neighbors)}``.
+        :param obs: ``{"obs": (n_envs, *obs_shape), "neighbors": (n_envs, max_neighbors)}``.
         :param next_obs: the same for the next step (the final observation where an episode ended).
         :param actions: ``(n_envs,)``.
         :param rewards: ``(n_envs,)``.
@@ -144,9 +145,10 @@ class GraphReplayBuffer(BaseBuffer):
         :param next_hidden: ``(n_envs, state_dim)`` state produced by this step.
         """
         shape = (self.n_copies, self.n_agents)
+        obs_shape = self.observations.shape[3:]
         pos = self.pos
-        self.observations[pos] = obs["obs"].reshape(*shape, -1)
-        self.next_observations[pos] = next_obs["obs"].reshape(*shape, -1)
+        self.observations[pos] = obs["obs"].reshape(*shape, *obs_shape)
+        self.next_observations[pos] = next_obs["obs"].reshape(*shape, *obs_shape)
         self.neighbors[pos] = obs["neighbors"].reshape(*shape, -1)
         self.next_neighbors[pos] = next_obs["neighbors"].reshape(*shape, -1)
         self.actions[pos] = actions.reshape(shape)

@@ -31,7 +31,8 @@ def observation_problem(
     An observation is bad when a value of ``obs`` is NaN or infinite or lies outside ``obs_space``'s
     bounds, or a neighbour index is not a whole number or lies outside ``[-1, n_agents - 1]``.
 
-    :param observations: ``{"obs": (n_slots, obs_dim), "neighbors": (n_slots, K), ...}``.
+    :param observations: ``{"obs": (n_slots, *obs_shape), "neighbors": (n_slots, K), ...}``; the
+        problem names a value of an n-D observation by its index tuple.
     :param obs_space: the ``Box`` of one agent's ``obs``.
     :param n_agents: agents per env copy.
     :return: ``(slot, problem)`` or ``None``.
@@ -43,10 +44,11 @@ def observation_problem(
     if not inside.all():
         slot, index = _first_bad_row(~inside.reshape(len(obs), -1))
         value = obs.reshape(len(obs), -1)[slot, index]
+        where = index if obs.ndim == 2 else tuple(int(i) for i in np.unravel_index(index, obs.shape[1:]))
         if not np.isfinite(value):
-            return slot, f"the non-finite value {value} at obs index {index}"
+            return slot, f"the non-finite value {value} at obs index {where}"
         low, high = obs_space.low.reshape(-1)[index], obs_space.high.reshape(-1)[index]
-        return slot, f"the value {value} at obs index {index}, outside the observation space [{low}, {high}]"
+        return slot, f"the value {value} at obs index {where}, outside the observation space [{low}, {high}]"
     neighbors = np.asarray(observations["neighbors"])
     if neighbors.dtype.kind not in "iu":
         whole = np.isfinite(neighbors) & (neighbors == np.round(neighbors))

@@ -22,7 +22,7 @@ class AgentGroup(NamedTuple):
     """A group of agents sharing spaces (and, in the models, parameters)."""
 
     name: str
-    observation_space: gym.spaces.Box  # 1-D
+    observation_space: gym.spaces.Box  # 1-D (padded to the widest group), or the shared n-D shape
     action_space: gym.spaces.Discrete
 
 
@@ -56,7 +56,8 @@ class GraphParallelEnv(ParallelEnv):
     :class:`AgentGroup` each) and ``group_ids`` ``(n_agents,)`` (the group of every agent); its
     shared spaces are the widest: ``padded_observation_space(groups)`` and ``Discrete`` of the
     largest action count. The array API then carries every observation zero-padded to the shared
-    width (group ``g`` fills the first ``groups[g].observation_space.shape[0]`` entries) and
+    width (group ``g`` fills the first ``groups[g].observation_space.shape[0]`` entries; observations
+    of more dimensions are not padded: every group then observes the shared shape) and
     takes actions below each agent's own group's action count; the dict API gives every agent its
     own group's spaces.
     """
@@ -72,7 +73,7 @@ class GraphParallelEnv(ParallelEnv):
 
     # --- array API, implemented by subclasses -------------------------------------------------
     def reset_arrays(self, seed: int | None = None, options: dict | None = None) -> np.ndarray:
-        """Start an episode. Returns observations ``(n_agents, obs_dim)``."""
+        """Start an episode. Returns observations ``(n_agents, *obs_shape)``."""
         raise NotImplementedError
 
     def step_arrays(
@@ -80,7 +81,7 @@ class GraphParallelEnv(ParallelEnv):
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Advance one step with ``actions`` of shape ``(n_agents,)``.
 
-        Returns ``(observations (n_agents, obs_dim), rewards (n_agents,) float32,
+        Returns ``(observations (n_agents, *obs_shape), rewards (n_agents,) float32,
         terminated (n_agents,) bool, truncated (n_agents,) bool, team_info)`` where ``team_info``
         is a dict of team-level figures (copied into every agent's info by the dict API).
         """

@@ -351,28 +351,39 @@ class Grouped(nn.Module):
 
     :param make: builds one copy.
     :param n_groups: number of groups.
+    :param item_dims: ``None`` for copies that take any leading dimensions (as ``nn.Linear``; rows
+        are then feature vectors), or the number of trailing dimensions of one row (a whole
+        observation): the copies then always see the rows flattened to ``(rows, *item_shape)``.
     """
 
-    def __init__(self, make: Callable[[], nn.Module], n_groups: int = 1) -> None:
+    def __init__(
+        self, make: Callable[[], nn.Module], n_groups: int = 1, item_dims: int | None = None
+    ) -> None:
         super().__init__()
-        _check_positive(n_groups=n_groups)
+        _check_positive(n_groups=n_groups, item_dims=1 if item_dims is None else item_dims)
         self.members = nn.ModuleList(make() for _ in range(n_groups))
+        self.item_dims = item_dims
 
     def __getitem__(self, group: int) -> nn.Module:
         return self.members[group]
 
     def forward(self, *inputs: Tensor, graph: GraphBatch | None = None) -> Tensor:
         """Apply the copies to ``inputs`` whose leading dimensions are the agents of ``graph``
-        (``(batch, n_agents, ...)`` or flattened ``(batch * n_agents, ...)``); one group needs no graph."""
-        if len(self.members) == 1:
+        (``(batch, n_agents, *item_shape)`` or flattened ``(batch * n_agents, *item_shape)``); one
+        group needs no graph. :return: ``(*leading, out_features)``."""
+        if len(self.members) == 1 and self.item_dims is None:
             return self.members[0](*inputs)
-        leading = inputs[0].shape[:-1]
-        flat = [x.reshape(-1, x.shape[-1]) for x in inputs]
-        outputs = [
-            member(*(x.index_select(0, rows) for x in flat))
-            for member, rows in zip(self.members, graph.group_rows, strict=True)
-        ]
-        out = torch.cat(outputs).index_select(0, graph.group_inverse)
+        split = inputs[0].dim() - (self.item_dims or 1)
+        leading = inputs[0].shape[:split]
+        flat = [x.reshape(-1, *x.shape[split:]) for x in inputs]
+        if len(self.members) == 1:
+            out = self.members[0](*flat)
+        else:
+            outputs = [
+                member(*(x.index_select(0, rows) for x in flat))
+                for member, rows in zip(self.members, graph.group_rows, strict=True)
+            ]
+            out = torch.cat(outputs).index_select(0, graph.group_inverse)
         return out.reshape(*leading, out.shape[-1])
 
 
@@ -553,7 +564,11 @@ class HGRN(nn.Module):
     Observations of all groups arrive zero-padded to one width ``obs_dim``; the padding is always
     zero, so a group's encoder acts as one on its own observation width.
 
-    :param obs_dim: observation features per agent (the widest group's).
+    Observations of any shape are flattened before the encoder, or mapped by a features extractor
+    (one per group) whose features then take the observation's place.
+
+    :param obs_dim: observation features per agent (the widest group's), or the shape of one
+        agent's observation.
     :param n_actions: outputs per agent (Q-values or logits; the largest group's action count).
     :param hidden_dim: hidden size ``H``.
     :param n_heads: attention heads.
@@ -567,11 +582,15 @@ class HGRN(nn.Module):
         parameters, attention weights and the returned outputs and state stay float32. Faster at
         large sizes where the hardware has bfloat16 arithmetic (AVX512-BF16 or AMX, recent GPUs);
         ``benchmarks/throughput.py --sizes paper paper-bf16`` compares both.
+    :param features_extractor: builds one features extractor (called once per group): a module
+        mapping observations ``(rows, *obs_shape)`` float32 to ``(rows, features_dim)``, with an
+        integer attribute ``features_dim`` (SB3's ``BaseFeaturesExtractor``). ``None``: the
+        flattened observation is the encoder's input.
     """
 
     def __init__(
         self,
-        obs_dim: int,
+        obs_dim: int | Sequence[int],
         n_actions: int,
         hidden_dim: int = 64,
         n_heads: int = 4,
@@ -580,11 +599,16 @@ class HGRN(nn.Module):
         recurrent: bool = True,
         group_n_actions: Sequence[int] | None = None,
         mixed_precision: bool = False,
+        features_extractor: Callable[[], nn.Module] | None = None,
     ) -> None:
         super().__init__()
         if communication not in COMMUNICATIONS:
             raise ValueError(f"communication must be one of {COMMUNICATIONS}, got {communication!r}")
-        _check_positive(obs_dim=obs_dim, n_actions=n_actions, hidden_dim=hidden_dim, n_heads=n_heads)
+        self.obs_shape = (int(obs_dim),) if isinstance(obs_dim, int) else tuple(int(n) for n in obs_dim)
+        if not self.obs_shape or min(self.obs_shape) < 1:
+            raise ValueError(f"obs_dim must be a positive size or shape, got {obs_dim}")
+        obs_dim = math.prod(self.obs_shape)
+        _check_positive(n_actions=n_actions, hidden_dim=hidden_dim, n_heads=n_heads)
         head_dim = hidden_dim // n_heads if head_dim is None else head_dim
         _check_positive(head_dim=head_dim)
         group_n_actions = [n_actions] if group_n_actions is None else [int(n) for n in group_n_actions]
@@ -592,7 +616,7 @@ class HGRN(nn.Module):
             raise ValueError(
                 f"group_n_actions must be positive with maximum n_actions={n_actions}, got {group_n_actions}"
             )
-        self.obs_dim = obs_dim
+        self.obs_dim = obs_dim  # flattened width
         self.hidden_dim = hidden_dim
         self.recurrent = recurrent
         self.mixed_precision = mixed_precision
@@ -602,7 +626,12 @@ class HGRN(nn.Module):
             torch.arange(n_actions) < torch.tensor(group_n_actions).unsqueeze(1),
             persistent=False,
         )
-        self.encoder = Grouped(lambda: nn.Sequential(nn.Linear(obs_dim, hidden_dim), nn.ReLU()), n_groups)
+        self.features_extractor = None
+        encoder_in = obs_dim
+        if features_extractor is not None:
+            self.features_extractor = Grouped(features_extractor, n_groups, item_dims=len(self.obs_shape))
+            encoder_in = checked_features_dim(self.features_extractor[0], self.obs_shape)
+        self.encoder = Grouped(lambda: nn.Sequential(nn.Linear(encoder_in, hidden_dim), nn.ReLU()), n_groups)
         self.comm1 = _make_communication(communication, hidden_dim, n_heads, head_dim, n_groups)
         self.comm2 = _make_communication(communication, hidden_dim, n_heads, head_dim, n_groups)
         self.gru = Grouped(lambda: nn.GRUCell(3 * hidden_dim, hidden_dim), n_groups) if recurrent else None
@@ -619,7 +648,7 @@ class HGRN(nn.Module):
     ) -> tuple[Tensor, Tensor]:
         """One step for all agents.
 
-        :param obs: ``(batch, n_agents, obs_dim)`` float observations.
+        :param obs: ``(batch, n_agents, *obs_shape)`` float observations.
         :param neighbors: ``(batch, n_agents, max_neighbors)`` agent indices, ``-1`` = no entry
             (``max_neighbors`` may be 0), or the :class:`GraphBatch` of these graphs built with this
             network's ``n_groups`` (and the groups), which several networks can share.
@@ -639,7 +668,7 @@ class HGRN(nn.Module):
             else contextlib.nullcontext()
         )
         with precision:
-            encoded = self.encoder(obs, graph=graph)
+            encoded = self.encode(obs, graph)
             hop1 = self.comm1(encoded, graph)
             hop2 = self.comm2(hop1, graph)
             features = torch.cat([encoded, hop1, hop2], dim=-1)
@@ -655,11 +684,23 @@ class HGRN(nn.Module):
             out = out.masked_fill(~valid, MASKED_OUTPUT)
         return out, hidden
 
+    def encode(self, obs: Tensor, graph: GraphBatch) -> Tensor:
+        """The encoder's output ``(batch, n_agents, hidden_dim)`` for observations ``(batch, n_agents,
+        *obs_shape)``: of the features extractor's features, or of the flattened observations."""
+        if self.features_extractor is None:
+            features = obs.reshape(*obs.shape[:2], self.obs_dim)
+        else:
+            features = self.features_extractor(obs, graph=graph)
+        return self.encoder(features, graph=graph)
+
     def _check_inputs(
         self, obs: Tensor, neighbors: Tensor | GraphBatch, hidden: Tensor, groups: Tensor | None
     ) -> None:
-        if obs.dim() != 3 or obs.shape[-1] != self.obs_dim:
-            raise ValueError(f"obs must have shape (batch, n_agents, {self.obs_dim}), got {tuple(obs.shape)}")
+        if obs.dim() != 2 + len(self.obs_shape) or tuple(obs.shape[2:]) != self.obs_shape:
+            raise ValueError(
+                f"obs must have shape (batch, n_agents, {', '.join(map(str, self.obs_shape))}), "
+                f"got {tuple(obs.shape)}"
+            )
         if isinstance(neighbors, GraphBatch):
             if (neighbors.batch, neighbors.n_agents) != tuple(obs.shape[:2]):
                 raise ValueError(
@@ -679,6 +720,39 @@ class HGRN(nn.Module):
         expected = (*obs.shape[:2], self.state_dim)
         if tuple(hidden.shape) != expected:
             raise ValueError(f"hidden must have shape {expected}, got {tuple(hidden.shape)}")
+
+
+def checked_features_dim(extractor: nn.Module, obs_shape: tuple[int, ...]) -> int:
+    """The ``features_dim`` of a features extractor, after checking that it maps a batch of zero
+    observations ``(2, *obs_shape)`` to ``(2, features_dim)``; a ``ValueError`` (``TypeError`` for a
+    missing ``features_dim``) names the extractor and what it got wrong."""
+    name = type(extractor).__name__
+    features_dim = getattr(extractor, "features_dim", None)
+    if not isinstance(features_dim, int) or isinstance(features_dim, bool) or features_dim < 1:
+        raise TypeError(
+            f"The features extractor {name} needs a positive integer features_dim attribute (the width of "
+            f"its output, as SB3's BaseFeaturesExtractor has), got {features_dim!r}."
+        )
+    probe = torch.zeros(2, *obs_shape)
+    was_training = extractor.training
+    extractor.train(False)
+    try:
+        with torch.no_grad():
+            out = extractor(probe)
+    except Exception as error:
+        raise ValueError(
+            f"The features extractor {name} fails on observations of shape {tuple(probe.shape)} "
+            f"(batch, *obs_shape): {error}"
+        ) from error
+    finally:
+        extractor.train(was_training)
+    if not isinstance(out, Tensor) or tuple(out.shape) != (2, features_dim):
+        got = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__
+        raise ValueError(
+            f"The features extractor {name} maps observations of shape {tuple(probe.shape)} (batch, "
+            f"*obs_shape) to {got}; it must return (batch, features_dim) = (2, {features_dim})."
+        )
+    return features_dim
 
 
 def _make_communication(

@@ -9,6 +9,7 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import Schedule
+from torch import nn
 
 from sb3_hgrn.common.checks import observation_problem, slot_name
 from sb3_hgrn.common.hgrn import HGRN, GraphBatch
@@ -42,8 +43,8 @@ class GraphPolicy(BasePolicy):
     hyperparameter: the algorithm sets it from the env it runs on, so the same weights serve any
     agent count.
 
-    :param observation_space: Dict space with ``obs`` ``(obs_dim,)`` and ``neighbors`` ``(K,)``
-        (and ``group``, ``action_mask`` with agent groups).
+    :param observation_space: Dict space with ``obs`` (a ``Box`` of any shape ``obs_shape``) and
+        ``neighbors`` ``(K,)`` (and ``group``, ``action_mask`` with agent groups).
     :param action_space: Discrete action space.
     :param lr_schedule: learning-rate schedule of the optimiser.
     :param hidden_dim: width H of the encoder, the attention layers and the recurrent state.
@@ -56,6 +57,13 @@ class GraphPolicy(BasePolicy):
     :param alpha_log_space: learn ``log(alpha)`` instead of the temperature alpha itself.
     :param group_n_actions: action count of every agent group (set by the algorithm from a
         heterogeneous env; ``None``: one group). Every group has its own network parameters and alpha.
+    :param features_extractor_class: SB3-style features extractor, built as
+        ``features_extractor_class(observation_space["obs"], **features_extractor_kwargs)`` once per
+        network and agent group, mapping observations ``(batch, *obs_shape)`` (float32, values as the
+        env gives them) to ``(batch, features_dim)``; its features take the observation's place at
+        the input of every HGRN (see :class:`~sb3_hgrn.common.hgrn.HGRN`). ``None``: the flattened
+        observation.
+    :param features_extractor_kwargs: keyword arguments of ``features_extractor_class``.
     """
 
     def __init__(
@@ -72,6 +80,8 @@ class GraphPolicy(BasePolicy):
         stochastic: bool = True,
         alpha_log_space: bool = False,
         group_n_actions: list[int] | None = None,
+        features_extractor_class: type[nn.Module] | None = None,
+        features_extractor_kwargs: dict[str, Any] | None = None,
         optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: dict[str, Any] | None = None,
         normalize_images: bool = False,
@@ -91,6 +101,8 @@ class GraphPolicy(BasePolicy):
             communication=communication,
             recurrent=recurrent,
             mixed_precision=mixed_precision,
+            features_extractor_class=features_extractor_class,
+            features_extractor_kwargs=features_extractor_kwargs,
         )
         if ("group" in observation_space.spaces) != (group_n_actions is not None):
             raise ValueError(
@@ -115,11 +127,23 @@ class GraphPolicy(BasePolicy):
 
         :param overrides: network options replacing the policy's (e.g. ``communication="none"``).
         """
+        options = {**self.network_kwargs, **overrides}
+        extractor_class = options.pop("features_extractor_class", None)
+        extractor_kwargs = dict(options.pop("features_extractor_kwargs", None) or {})
+        obs_space = self.observation_space["obs"]
+        if extractor_class is not None and not callable(extractor_class):
+            raise TypeError(
+                f"features_extractor_class must be a class such as a subclass of SB3's "
+                f"BaseFeaturesExtractor, got {extractor_class!r}."
+            )
         return HGRN(
-            obs_dim=self.observation_space["obs"].shape[0],
+            obs_dim=obs_space.shape,
             n_actions=int(self.action_space.n),
             group_n_actions=self.group_n_actions,
-            **{**self.network_kwargs, **overrides},
+            features_extractor=None
+            if extractor_class is None
+            else lambda: extractor_class(obs_space, **extractor_kwargs),
+            **options,
         )
 
     @property
@@ -151,9 +175,9 @@ class GraphPolicy(BasePolicy):
     def to_graphs(self, obs: GraphObs) -> tuple[th.Tensor, th.Tensor, th.Tensor | None]:
         """Slot batch -> graphs.
 
-        :param obs: ``{"obs": (n_slots, obs_dim), "neighbors": (n_slots, K)}`` tensors (and
+        :param obs: ``{"obs": (n_slots, *obs_shape), "neighbors": (n_slots, K)}`` tensors (and
             ``"group": (n_slots,)`` with agent groups).
-        :return: observations ``(n_graphs, n_agents, obs_dim)`` float32, neighbours
+        :return: observations ``(n_graphs, n_agents, *obs_shape)`` float32, neighbours
             ``(n_graphs, n_agents, K)`` int64 and group ids ``(n_graphs, n_agents)`` int64 (``None``
             for one group).
         """
@@ -169,7 +193,7 @@ class GraphPolicy(BasePolicy):
         n_graphs = n_slots // n_agents
         groups = obs.get("group")
         return (
-            obs["obs"].reshape(n_graphs, n_agents, -1).float(),
+            obs["obs"].reshape(n_graphs, n_agents, *obs["obs"].shape[1:]).float(),
             obs["neighbors"].reshape(n_graphs, n_agents, -1).long(),
             None if groups is None else groups.reshape(n_graphs, n_agents).long(),
         )
@@ -208,7 +232,7 @@ class GraphPolicy(BasePolicy):
     ) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
         """Actions for all slots, with the recurrent state threaded as in sb3-contrib's RecurrentPPO.
 
-        :param observation: ``{"obs": (n_slots, obs_dim), "neighbors": (n_slots, K)}``.
+        :param observation: ``{"obs": (n_slots, *obs_shape), "neighbors": (n_slots, K)}``.
         :param state: ``(hidden,)`` with ``hidden`` of shape ``(1, n_slots, state_dim)``; ``None``
             starts from zeros.
         :param episode_start: ``(n_slots,)``, true where ``observation`` is the first of an episode

@@ -4,12 +4,14 @@ Slot layout: ``num_envs = n_copies * n_agents`` slots in copy-major order (copy 
 copy 1 agents 0..N-1, ...), so any per-slot array reshapes to ``(n_copies, n_agents, ...)``.
 Each slot observes a dict with
 
-* ``"obs"``: ``(obs_dim,)`` the agent's local observation, in the env's own (compact) dtype;
+* ``"obs"``: ``obs_shape`` the agent's local observation, a ``Box`` of any shape (``(obs_dim,)``,
+  or e.g. ``(13, 13, 5)`` map views) in the env's own (compact) dtype and shape;
 * ``"neighbors"``: ``(max_neighbors,)`` int32 indices of its neighbours within the same copy, the
   agent itself first, ``-1`` for unused entries;
 * with several agent groups (heterogeneous envs) also ``"group"``: ``()`` int8 the agent's group id
-  and ``"action_mask"``: ``(n_actions,)`` int8, 1 for the actions of its group. Observations are then
-  zero-padded to the widest group and the action space is that of the group with most actions.
+  and ``"action_mask"``: ``(n_actions,)`` int8, 1 for the actions of its group. 1-D observations are
+  then zero-padded to the widest group (observations of more dimensions must have one shape in all
+  groups) and the action space is that of the group with most actions.
 
 The neighbour space's bounds do not depend on the agent count, so a model trained with N agents
 loads onto an env with M agents.
@@ -107,13 +109,26 @@ def _check_groups(env: GraphParallelEnv) -> None:
             f"group_ids must hold one group id in 0..{len(env.groups) - 1} per agent ({env.n_agents}), "
             f"got shape {env.group_ids.shape}."
         )
-    width = env.shared_observation_space.shape[0]
+    shape = env.shared_observation_space.shape
     for group in env.groups:
         if not isinstance(group.action_space, gym.spaces.Discrete):
             raise TypeError(f"Graph envs need a Discrete action space, got {group.action_space}.")
-        if group.action_space.n > env.shared_action_space.n or group.observation_space.shape[0] > width:
+        if group.action_space.n > env.shared_action_space.n:
             raise ValueError(
-                f"Group {group.name!r} has more actions or observation values than the env's shared spaces."
+                f"Group {group.name!r} has {group.action_space.n} actions, more than the env's shared "
+                f"spaces hold ({env.shared_action_space})."
+            )
+        group_shape = group.observation_space.shape
+        if len(shape) == 1 and (len(group_shape) != 1 or group_shape[0] > shape[0]):
+            raise ValueError(
+                f"Group {group.name!r} observes shape {group_shape}, which does not fit the env's shared "
+                f"1-D observation space of {shape[0]} values (groups are zero-padded to the widest)."
+            )
+        if len(shape) > 1 and group_shape != shape:
+            raise ValueError(
+                f"Group {group.name!r} observes shape {group_shape}, the env's shared observation space "
+                f"{shape}: observations of more than one dimension are not padded, so every group must "
+                "observe the shared shape (flatten them in the env to pad 1-D observations instead)."
             )
 
 
@@ -166,8 +181,10 @@ class GraphVecEnv(VecEnv):
         if self.n_agents < 2:
             raise ValueError(f"A graph env needs at least two agents, got {self.n_agents}.")
         obs_space = first.shared_observation_space
-        if not isinstance(obs_space, gym.spaces.Box) or len(obs_space.shape) != 1:
-            raise TypeError(f"Agent observations must be a 1-D Box space, got {obs_space}.")
+        if not isinstance(obs_space, gym.spaces.Box) or len(obs_space.shape) == 0:
+            raise TypeError(
+                f"Agent observations must be a Box space of one or more dimensions, got {obs_space}."
+            )
         self.groups = first.groups
         _check_groups(first)
         self.group_n_actions = tuple(int(group.action_space.n) for group in self.groups)
@@ -273,7 +290,7 @@ class GraphVecEnv(VecEnv):
         self._episode_lengths[copy] = 0
 
     def _checked(self, copy: int, obs: np.ndarray, graph: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """One copy's observations ``(n_agents, obs_dim)`` and neighbours ``(n_agents, max_neighbors)``
+        """One copy's observations ``(n_agents, *obs_shape)`` and neighbours ``(n_agents, max_neighbors)``
         as returned by its env, after checking them (see the class docstring); the neighbours come
         back as int32."""
         expected = (self.n_agents, self.max_neighbors)

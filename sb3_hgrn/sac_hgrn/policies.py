@@ -85,7 +85,8 @@ class SACHGRNPolicy(GraphPolicy):
     ) -> tuple[th.Tensor, th.Tensor]:
         """The actor's logits ``(n_graphs, n_agents, n_actions)`` (its outputs over alpha with
         ``tempered_actor``; alpha detached) and its new state, from observations
-        ``(n_graphs, n_agents, obs_dim)``, the graphs, its state and the agents' group ids (or ``None``)."""
+        ``(n_graphs, n_agents, *obs_shape)``, the graphs, its state and the agents' group ids (or
+        ``None``)."""
         outputs, new_state = self.actor(observations, graph, state)
         if self.tempered_actor and self.stochastic:
             outputs = outputs / self.temperature.per_agent(groups)
