@@ -5,6 +5,8 @@ import json
 import os
 import subprocess
 import sys
+import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -12,9 +14,12 @@ import pytest
 from sb3_hgrn.cli import main
 from sb3_hgrn.experiments.backends import LocalBackend
 from sb3_hgrn.experiments.config import ConfigError
+from sb3_hgrn.experiments.lock import lock_holder
+from sb3_hgrn.experiments.runs import read_eval
 from sb3_hgrn.experiments.sweep import (
     Point,
     SweepSettings,
+    check_settings,
     grid_points,
     parse_grid,
     read_grid_file,
@@ -84,6 +89,21 @@ def test_sweep_refuses_bad_input_before_training(tmp_path):
     assert not list(tmp_path.iterdir())
 
 
+def test_a_folder_keeps_the_shared_settings_of_its_sweep(tmp_path):
+    settings = SweepSettings("uav_mbs_v0", "ci", 600, {"policy_kwargs": {"hidden_dim": 8}}, {"n_users": 20})
+    check_settings(tmp_path, settings)
+    check_settings(tmp_path, settings)  # the same settings: accepted
+    recorded = (tmp_path / "sweep.yml").read_text()
+    for other in (
+        replace(settings, timesteps=900),
+        replace(settings, env_params={}),
+        replace(settings, budget="cpu"),
+    ):
+        with pytest.raises(ConfigError, match="other shared settings"):
+            check_settings(tmp_path, other)
+    assert (tmp_path / "sweep.yml").read_text() == recorded
+
+
 def test_sweep_trains_the_grid_with_local_processes_and_no_ray(tmp_path):
     args = ["sweep", "--env", "uav_mbs_v0", "--budget", "ci", "--presets", "soft_hgrn", "--seeds", "1"]
     args += ["--timesteps", "360", "--grid", "batch_size=4,8", "--env-param", "n_users=20"]
@@ -122,10 +142,6 @@ def test_sweep_trains_the_grid_with_local_processes_and_no_ray(tmp_path):
     kept = (runs["batch_size=4"] / "eval.json").stat().st_mtime_ns
     assert main(args) == 0  # everything is done: nothing runs again
     assert (runs["batch_size=4"] / "eval.json").stat().st_mtime_ns == kept
-    with pytest.raises(ConfigError, match="other shared settings"):
-        run_grid(
-            SweepSettings("uav_mbs_v0", "ci", 900), ["soft_hgrn"], 1, {"batch_size": [4]}, folder=tmp_path
-        )
 
 
 def test_backend_options_give_clear_errors(tmp_path, monkeypatch, capsys):
@@ -174,3 +190,19 @@ def test_ray_backend_reproduces_the_local_table(local_ray, tmp_path):
     assert _rows(tmp_path / "local") == _rows(tmp_path / "ray")
     table = (tmp_path / "ray" / "table1.md").read_text().split("Summed wall time")[0]
     assert table == (tmp_path / "local" / "table1.md").read_text().split("Summed wall time")[0]
+
+
+def test_a_stopped_ray_task_stops_its_run(local_ray, tmp_path):
+    from sb3_hgrn.experiments.backends import RayBackend
+
+    args = ["train", "--env", "uav_mbs_v0", "--preset", "soft_hgrn", "--budget", "ci", "--seed", "0"]
+    args += ["--timesteps", "1200000", "--threads", "1", "--folder", str(tmp_path)]
+    folder = tmp_path / "uav_mbs_v0" / "soft_hgrn" / "seed_0"
+    run = RayBackend().start(args, tmp_path / "train.log", threads=1)
+    started = time.time()
+    while lock_holder(folder) is None:  # the run holds its folder's lock once it has started
+        assert run.poll() is None and time.time() - started < 120, (tmp_path / "train.log").read_text()
+        time.sleep(0.2)
+    started = time.time()
+    run.stop()
+    assert time.time() - started < 20 and lock_holder(folder) is None and read_eval(folder) is None

@@ -18,6 +18,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Any
@@ -59,12 +60,15 @@ def start_logged(
 
 def run_logged(args: list[str], log_path: str, threads: int | None, cwd: str) -> int:
     """Run ``sb3-hgrn ARGS`` in ``cwd`` to its end, output to ``log_path``; returns its exit status
-    (the body of a Ray task). Interrupted (Ray cancels a task with ``KeyboardInterrupt``), it stops
-    the process first, so that no run goes on without its sweep."""
+    (the body of a Ray task). Interrupted (Ray cancels a task with ``KeyboardInterrupt``, which
+    arrives between two of Python's steps, so it waits in short sleeps), it stops the process first,
+    so that no run goes on without its sweep."""
     process, log_file = start_logged(args, Path(log_path), threads, cwd)
     with log_file:
         try:
-            return process.wait()
+            while process.poll() is None:
+                time.sleep(0.2)
+            return process.returncode
         except KeyboardInterrupt:
             process.terminate()
             process.wait()
