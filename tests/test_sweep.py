@@ -149,6 +149,20 @@ def test_backend_options_give_clear_errors(tmp_path, monkeypatch, capsys):
     with pytest.raises(SystemExit):
         main([*table, "--cpus-per-run", "2"])
     assert "apply to --backend ray only" in capsys.readouterr().err
+    sweep = ["sweep", "--env", "uav_mbs_v0", "--budget", "ci", "--folder", str(tmp_path / "sweep")]
+    grid_file = tmp_path / "grid.yml"
+    grid_file.write_text("grid: {learning_rat: [1e-3]}\n")
+    for extra, message in [
+        (["--grid", "batch_size"], "Malformed --grid 'batch_size'"),
+        (["--env-grid", "n_users=,"], "Malformed --env-grid"),
+        (["--grid-file", str(tmp_path / "none.yml")], "Cannot read the grid file"),
+        (["--presets", "nope"], "Unknown preset 'nope'"),
+        (["--grid-file", str(grid_file)], "takes no argument 'learning_rat'"),
+    ]:
+        with pytest.raises(SystemExit):
+            main([*sweep, *extra])
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "sweep").exists()
     monkeypatch.setitem(sys.modules, "ray", None)  # as if ray were not installed
     with pytest.raises(SystemExit):
         main([*table, "--backend", "ray"])
