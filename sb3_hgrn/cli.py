@@ -1,5 +1,5 @@
-"""``sb3-hgrn`` / ``python -m sb3_hgrn``: train, evaluate and render runs, reproduce the paper's Table 1
-and draw its figures.
+"""``sb3-hgrn`` / ``python -m sb3_hgrn``: train, evaluate and render runs, reproduce the paper's Table 1,
+draw its figures and sweep grids of arguments.
 
 Examples::
 
@@ -8,6 +8,7 @@ Examples::
     sb3-hgrn render runs/surviving_v0/soft_hgrn/seed_0 --out episode.gif
     sb3-hgrn reproduce table1 --budget cpu --seeds 3 --jobs 2
     sb3-hgrn figure ctc --budget cpu --seeds 3 --jobs 2
+    sb3-hgrn sweep --env surviving_v0 --presets soft_hgrn --grid learning_rate=1e-3,3e-4 --seeds 3
     sb3-hgrn tune --env surviving_v0 --preset soft_hgrn --budget cpu --n-trials 50 --n-jobs 2
 
 See docs/cli.md.
@@ -21,6 +22,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from sb3_hgrn.common.vec_env import REGISTERED_ENVS
+from sb3_hgrn.experiments.backends import BACKENDS, Backend, make_backend
 from sb3_hgrn.experiments.config import BUDGETS, ConfigError, parse_assignments
 from sb3_hgrn.presets import TABLE1
 
@@ -55,13 +57,32 @@ def _add_trust_config(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_backend(parser: argparse.ArgumentParser) -> None:
+    """``--backend`` and the Ray backend's options (sb3_hgrn.experiments.backends)."""
+    parser.add_argument(
+        "--backend",
+        choices=BACKENDS,
+        default="local",
+        help="local: processes on this machine (default); ray: Ray tasks, on this machine or a cluster",
+    )
+    parser.add_argument(
+        "--address", help="ray: the cluster's address (default: $RAY_ADDRESS, else a new local Ray)"
+    )
+    parser.add_argument("--cpus-per-run", type=float, help="ray: CPUs reserved per run (default 1)")
+    parser.add_argument("--gpus-per-run", type=float, help="ray: GPUs reserved per run (default 0)")
+
+
+def _backend(args: argparse.Namespace) -> Backend:
+    return make_backend(args.backend, args.address, args.cpus_per_run, args.gpus_per_run)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with its subcommands ``train``, ``evaluate``, ``render``, ``reproduce``,
-    ``figure``, ``tune``."""
+    ``figure``, ``sweep``, ``tune``."""
     parser = argparse.ArgumentParser(
         prog="sb3-hgrn",
-        description="Train, evaluate and render sb3_hgrn runs; reproduce the paper's Table 1 and figures "
-        "(docs/cli.md).",
+        description="Train, evaluate and render sb3_hgrn runs; reproduce the paper's Table 1 and figures; "
+        "sweep grids of arguments (docs/cli.md).",
         epilog="examples:\n" + __doc__.split("Examples::\n\n")[1].split("\n\n")[0],
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -167,6 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=["uav_mbs_v0", "surviving_v0", "pursuit_v0"],
         help="columns (default all three)",
     )
+    _add_backend(reproduce)
 
     figure = commands.add_parser("figure", help="draw a figure of the paper, training its runs first")
     figure.add_argument(
@@ -203,6 +225,55 @@ def build_parser() -> argparse.ArgumentParser:
     figure.add_argument(
         "--save-freq", type=_positive_int, help="checkpoint every this many agent-steps (killed runs resume)"
     )
+    _add_backend(figure)
+
+    sweep = commands.add_parser(
+        "sweep", help="train a grid of presets, seeds and argument values on one env, and summarise it"
+    )
+    sweep.add_argument("--env", required=True, help=f"one of {', '.join(REGISTERED_ENVS)}")
+    sweep.add_argument("--budget", default="cpu", help=f"config budget: {', '.join(BUDGETS)} (default cpu)")
+    sweep.add_argument("--presets", nargs="+", help="presets (default: the grid file's, else soft_hgrn)")
+    sweep.add_argument("--seeds", type=_positive_int, help="seeds 0..N-1 (default: the grid file's, else 3)")
+    sweep.add_argument(
+        "--timesteps", type=_positive_int, help="agent-steps of training per run (default: the budget's)"
+    )
+    sweep.add_argument(
+        "--grid",
+        nargs="+",
+        action="extend",
+        default=[],
+        metavar="KEY=V1,V2",
+        help="algorithm argument and its values (e.g. learning_rate=1e-3,3e-4 batch_size=32,64)",
+    )
+    sweep.add_argument(
+        "--env-grid",
+        nargs="+",
+        action="extend",
+        default=[],
+        metavar="KEY=V1,V2",
+        help="env argument and its values (e.g. n_agents=10,20)",
+    )
+    sweep.add_argument(
+        "--grid-file", help="YAML file with presets, seeds, grid, env_grid, params, env_params (docs/cli.md)"
+    )
+    sweep.add_argument(
+        "--param",
+        nargs="+",
+        action="extend",
+        default=[],
+        metavar="KEY=VALUE",
+        help="algorithm argument of every point (as train's --param)",
+    )
+    _add_env_params(sweep)
+    sweep.add_argument(
+        "--folder", default="sweeps", help="runs go to <folder>/<point>/<env>/<preset>/seed_<seed>"
+    )
+    sweep.add_argument("--jobs", type=_positive_int, default=1, help="runs at a time")
+    sweep.add_argument("--threads", type=_positive_int, help="torch threads per run (default 1 if jobs > 1)")
+    sweep.add_argument(
+        "--save-freq", type=_positive_int, help="checkpoint every this many agent-steps (killed runs resume)"
+    )
+    _add_backend(sweep)
     _add_tune_parser(commands)
     return parser
 
@@ -368,6 +439,7 @@ def _reproduce(args: argparse.Namespace) -> int:
         envs=args.envs,
         threads=args.threads,
         save_freq=args.save_freq,
+        backend=_backend(args),
     )
     return _report_failures(failed)
 
@@ -386,6 +458,35 @@ def _figure(args: argparse.Namespace) -> int:
         ratios=args.ratios,
         threads=args.threads,
         save_freq=args.save_freq,
+        backend=_backend(args),
+    )
+    return _report_failures(failed)
+
+
+def _sweep(args: argparse.Namespace) -> int:
+    from sb3_hgrn.experiments.sweep import SweepSettings, assignments, parse_grid, read_grid_file, run_grid
+
+    spec = read_grid_file(args.grid_file) if args.grid_file else {}
+    settings = SweepSettings(
+        args.env,
+        args.budget,
+        args.timesteps,
+        params=parse_assignments([*assignments(list(spec.get("params", {}).items())), *args.param]),
+        env_params=parse_assignments(
+            [*assignments(list(spec.get("env_params", {}).items())), *args.env_param], "--env-param"
+        ),
+    )
+    failed = run_grid(
+        settings,
+        args.presets or spec.get("presets") or ["soft_hgrn"],
+        n_seeds=args.seeds or spec.get("seeds", 3),
+        grid={**spec.get("grid", {}), **parse_grid(args.grid)},
+        env_grid={**spec.get("env_grid", {}), **parse_grid(args.env_grid, "--env-grid")},
+        folder=args.folder,
+        jobs=args.jobs,
+        threads=args.threads,
+        save_freq=args.save_freq,
+        backend=_backend(args),
     )
     return _report_failures(failed)
 
@@ -445,6 +546,7 @@ COMMANDS = {
     "reproduce": _reproduce,
     "figure": _figure,
     "tune": _tune,
+    "sweep": _sweep,
 }
 
 

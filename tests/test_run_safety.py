@@ -313,7 +313,7 @@ def test_sweeps_skip_a_locked_run_and_keep_its_log(tmp_path):
     (job.folder / LOG_FILE).write_text("the running run's log\n")
     messages = []
     with RunLock(job.folder):
-        failed = run_jobs([job], lambda job: [sys.executable, "-c", "pass"], log=messages.append)
+        failed = run_jobs([job], lambda job: ["--help"], log=messages.append)
     assert failed == [job] and f"in use by process {os.getpid()}" in messages[0]
     assert (job.folder / LOG_FILE).read_text() == "the running run's log\n"
 

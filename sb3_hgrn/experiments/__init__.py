@@ -1,10 +1,12 @@
-"""Experiment runner behind the ``sb3-hgrn`` command line: YAML configs, run folders, the Table 1 sweep.
+"""Experiment runner behind the ``sb3-hgrn`` command line: YAML configs, run folders, the sweeps.
 
 - :mod:`sb3_hgrn.experiments.config`: load ``sb3_hgrn/hyperparams/<env>.yml`` and resolve one run's
   configuration (budget, preset overrides, ``--param`` / ``--env-param``).
 - :mod:`sb3_hgrn.experiments.runs`: train one run into its folder, evaluate and render saved runs.
 - :mod:`sb3_hgrn.experiments.table1`: the paper's Table 1 sweep, resumable, and its tables.
 - :mod:`sb3_hgrn.experiments.figures`: the paper's figures (CTC curves, alpha, transfer, p_alpha).
+- :mod:`sb3_hgrn.experiments.sweep`: grids of presets, seeds and argument values on one env.
+- :mod:`sb3_hgrn.experiments.backends`: where the sweeps' runs execute (local processes, Ray tasks).
 """
 
 from sb3_hgrn.experiments.config import ConfigError, RunConfig, load_hyperparams, resolve_config

@@ -1,7 +1,8 @@
 """The paper's figures besides Table 1 and the case study, each drawn by one command.
 
 ``sb3-hgrn figure NAME --budget B --seeds N`` first trains the runs the figure needs, each as its own
-``python -m sb3_hgrn train`` process into ``<folder>/figures/<NAME>/.../<env>/<preset>/seed_<seed>/``
+``python -m sb3_hgrn train`` process (on a backend of :mod:`sb3_hgrn.experiments.backends`) into
+``<folder>/figures/<NAME>/.../<env>/<preset>/seed_<seed>/``
 (:func:`sb3_hgrn.experiments.table1.run_jobs`, so finished runs are skipped exactly as
 ``reproduce table1`` skips them), then draws the figure from the run folders into a PNG and writes
 beside it the plotted numbers (``<out>.csv``) and what produced them (``<out>.json``: the command,
@@ -24,7 +25,7 @@ import os
 import shlex
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -36,6 +37,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from sb3_hgrn.common.files import atomic_write, write_csv_atomically
+from sb3_hgrn.experiments.backends import Backend, LocalBackend
 from sb3_hgrn.experiments.callbacks import TEAM_RETURNS_FILE
 from sb3_hgrn.experiments.config import (
     ConfigError,
@@ -53,7 +55,7 @@ from sb3_hgrn.experiments.runs import (
     read_eval,
     write_json,
 )
-from sb3_hgrn.experiments.table1 import Job, check_budget_of_folder, plan_jobs, run_jobs, train_command
+from sb3_hgrn.experiments.table1 import Job, check_budget_of_folder, plan_jobs, run_jobs, train_args
 from sb3_hgrn.presets import HGAT_TWINS, PRESETS, TABLE1
 
 FIGURES = {
@@ -96,17 +98,6 @@ MAP_NOTE = (
 )
 
 
-@dataclass
-class FigureJob(Job):
-    """A run of a figure: a Table 1 job with extra ``train`` arguments (e.g. ``--param ...``)."""
-
-    args: tuple[str, ...] = ()
-
-    def label(self) -> str:
-        """How the log names the run."""
-        return " ".join((super().label(), *self.args))
-
-
 def check_figure_name(name: str) -> None:
     """Raise :class:`ConfigError` unless ``name`` is one of :data:`FIGURES`."""
     if name not in FIGURES:
@@ -132,7 +123,7 @@ def ratio_root(root: Path, ratio: float) -> Path:
 
 def plan_figure(
     name: str, root: Path, presets: Sequence[str], seeds: Sequence[int], ratios: Sequence[float]
-) -> list[FigureJob]:
+) -> list[Job]:
     """Every run of figure ``name``, seed by seed (a partial sweep covers the figure with its first seeds).
 
     ``alpha`` runs log every team episode (``--log-interval 1``); ``p_alpha`` runs get
@@ -141,13 +132,13 @@ def plan_figure(
     env = FIGURE_ENVS[name]
     if name == "p_alpha":
         return [
-            FigureJob(**vars(job), args=("--param", f"target_entropy_ratio={ratio:g}"))
+            replace(job, args=("--param", f"target_entropy_ratio={ratio:g}"))
             for seed in seeds
             for ratio in ratios
             for job in plan_jobs(ratio_root(root, ratio), [env], presets, [seed])
         ]
     args = ("--log-interval", "1") if name == "alpha" else ()
-    return [FigureJob(**vars(job), args=args) for job in plan_jobs(root, [env], presets, seeds)]
+    return [replace(job, args=args) for job in plan_jobs(root, [env], presets, seeds)]
 
 
 def figure_command_line(
@@ -182,23 +173,26 @@ def make_figure(
     threads: int | None = None,
     save_freq: int | None = None,
     log: Callable[[str], None] = PRINT,
+    backend: Backend | None = None,
 ) -> list[Job]:
     """Train the missing runs of figure ``name`` (``jobs`` processes at a time) and draw it.
 
     :param out: the PNG (default ``<folder>/figures/<name>.png``); ``.csv`` and ``.json`` go beside it.
     :param presets: methods drawn (default :data:`DEFAULT_PRESETS`).
     :param ratios: ``p_alpha`` only: target-entropy ratios (default :data:`P_ALPHA_RATIOS`).
-    :param threads: torch threads per process (default: 1 when ``jobs > 1``, else torch's own).
+    :param threads: torch threads per process (default: the backend's, for the local one 1 when
+        ``jobs > 1``, else torch's own).
     :param save_freq: checkpoint every this many agent-steps, so that a killed run resumes.
+    :param backend: where the runs execute (default: local processes).
     :return: the runs that failed (the figure is drawn from the others).
     """
     start = time.time()
     presets, ratios = check_arguments(name, budget, presets, ratios, n_seeds, jobs)
-    if threads is None and jobs > 1:
-        threads = 1
+    backend = backend or LocalBackend()
+    threads = backend.default_threads(jobs) if threads is None else threads
     out = Path(out) if out is not None else Path(folder) / "figures" / f"{name}.png"
     all_jobs = plan_figure(name, figure_root(folder, name), presets, list(range(n_seeds)), ratios)
-    failed = train_missing(name, budget, all_jobs, jobs, threads, save_freq, log)
+    failed = train_missing(name, budget, all_jobs, jobs, threads, save_freq, log, backend)
     done = [job for job in all_jobs if read_eval(job.folder) is not None]
     if not done:
         log(f"No finished run to draw figure {name} from.")
@@ -244,27 +238,30 @@ def check_arguments(
 def train_missing(
     name: str,
     budget: str,
-    all_jobs: Sequence[FigureJob],
+    all_jobs: Sequence[Job],
     jobs: int,
     threads: int | None,
     save_freq: int | None,
     log: Callable[[str], None] = PRINT,
+    backend: Backend | None = None,
 ) -> list[Job]:
     """Train every run of ``all_jobs`` without a complete ``eval.json``, ``jobs`` processes at a time
-    (runs of another budget in the same folders are refused); returns the runs that failed."""
+    on ``backend`` (runs of another budget in the same folders are refused); returns the runs that
+    failed."""
     for root in dict.fromkeys(job.folder.parents[2] for job in all_jobs):
         check_budget_of_folder(root, budget)
     todo = [job for job in all_jobs if read_eval(job.folder) is None]
     log(
         f"Figure {name}, budget {budget}: {len(all_jobs)} runs, {len(all_jobs) - len(todo)} already done, "
-        f"{len(todo)} to run, {jobs} at a time"
+        f"{len(todo)} to run, {jobs} at a time ({(backend or LocalBackend()).name} backend)"
     )
     return run_jobs(
         todo,
-        lambda job: [*train_command(job, budget, job.folder.parents[2], threads, save_freq), *job.args],
+        lambda job: train_args(job, budget, job.folder.parents[2], threads, save_freq),
         jobs,
         threads,
         log,
+        backend=backend,
     )
 
 

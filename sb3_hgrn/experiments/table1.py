@@ -1,5 +1,7 @@
 """The paper's Table 1 sweep: every (env, preset, seed) trained and evaluated in its own process.
 
+The processes run on a backend (:mod:`sb3_hgrn.experiments.backends`): this machine's, or Ray tasks.
+
 Runs go to ``<folder>/table1/<env>/<preset>/seed_<seed>/`` (see :mod:`sb3_hgrn.experiments.runs`);
 a run whose folder holds a complete ``eval.json`` is skipped, so a killed sweep resumes where it
 stopped. Each (env, seed) also gets a uniformly random policy evaluated the same way, without
@@ -11,17 +13,16 @@ sweep ends they get the robust statistics too (:mod:`sb3_hgrn.experiments.table1
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any
 
 import numpy as np
 
 from sb3_hgrn.common.files import write_csv_atomically, write_text_atomically
+from sb3_hgrn.experiments.backends import Backend, LocalBackend, RunHandle
 from sb3_hgrn.experiments.config import (
     RANDOM_POLICY,
     ConfigError,
@@ -61,16 +62,17 @@ COMPARISON_EPSILON = "0.3"
 
 @dataclass
 class Job:
-    """One (env, preset, seed) run of the sweep."""
+    """One (env, preset, seed) run of a sweep, with extra ``train`` arguments (e.g. ``--param ...``)."""
 
     env: str
     preset: str
     seed: int
     folder: Path
+    args: tuple[str, ...] = ()
 
     def label(self) -> str:
         """How the sweep's log names the run."""
-        return f"{self.env} {self.preset} seed {self.seed}"
+        return " ".join((f"{self.env} {self.preset} seed {self.seed}", *self.args))
 
 
 def plan_jobs(root: Path, envs: Sequence[str], presets: Sequence[str], seeds: Sequence[int]) -> list[Job]:
@@ -87,14 +89,12 @@ def _print(message: str) -> None:
     print(message, flush=True)
 
 
-def train_command(
+def train_args(
     job: Job, budget: str, root: Path, threads: int | None, save_freq: int | None = None
 ) -> list[str]:
-    """The ``python -m sb3_hgrn train`` command line of ``job``."""
+    """The ``sb3-hgrn train`` arguments of ``job`` into the run folders under ``root`` (its own
+    ``job.args`` last)."""
     command = [
-        sys.executable,
-        "-m",
-        "sb3_hgrn",
         "train",
         "--env",
         job.env,
@@ -113,18 +113,7 @@ def train_command(
         command += ["--threads", str(threads)]
     if save_freq is not None:
         command += ["--save-freq", str(save_freq)]
-    return command
-
-
-def _child_env(threads: int | None) -> dict[str, str]:
-    """Environment of a child process: this package importable, thread counts capped if asked."""
-    env = dict(os.environ)
-    package_parent = str(Path(__file__).resolve().parents[2])
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (package_parent, env.get("PYTHONPATH", "")) if p)
-    if threads is not None:
-        for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-            env[name] = str(threads)
-    return env
+    return [*command, *job.args]
 
 
 def check_budget_of_folder(root: Path, budget: str) -> None:
@@ -148,12 +137,15 @@ def run_sweep(
     threads: int | None = None,
     save_freq: int | None = None,
     log: Callable[[str], None] = _print,
+    backend: Backend | None = None,
 ) -> list[Job]:
     """Train and evaluate every missing run, ``jobs`` processes at a time, and write the tables.
 
-    :param threads: torch threads per process (default: 1 when ``jobs > 1``, else torch's own).
+    :param threads: torch threads per process (default: the backend's, for the local one 1 when
+        ``jobs > 1``, else torch's own).
     :param save_freq: checkpoint every this many agent-steps, so that a killed run resumes from its
         last checkpoint (default: a killed run restarts from scratch).
+    :param backend: where the runs execute (default: local processes).
     :return: the runs that failed.
     """
     check_budget_name(budget)
@@ -166,8 +158,8 @@ def run_sweep(
     if n_seeds < 1 or jobs < 1:
         raise ConfigError(f"--seeds and --jobs must be >= 1, got {n_seeds} and {jobs}.")
     rliable_modules()  # the tables' statistics need it: fail before training, not after
-    if threads is None and jobs > 1:
-        threads = 1
+    backend = backend or LocalBackend()
+    threads = backend.default_threads(jobs) if threads is None else threads
     results, root = Path(folder), Path(folder) / "table1"
     check_budget_of_folder(root, budget)
     seeds = list(range(n_seeds))
@@ -176,15 +168,16 @@ def run_sweep(
     evaluate_random_anchors(root, budget, envs, seeds, log)
     log(
         f"Table 1, budget {budget}: {len(all_jobs)} runs, {len(all_jobs) - len(todo)} already done, "
-        f"{len(todo)} to run, {jobs} at a time"
+        f"{len(todo)} to run, {jobs} at a time ({backend.name} backend)"
     )
     failed = run_jobs(
         todo,
-        lambda job: train_command(job, budget, root, threads, save_freq),
+        lambda job: train_args(job, budget, root, threads, save_freq),
         jobs,
         threads,
         log,
         on_finished=lambda: write_tables(results, budget, envs, presets, seeds, robust=False),
+        backend=backend,
     )
     write_tables(results, budget, envs, presets, seeds)
     log(f"Wrote {results / 'table1.csv'} and {results / 'table1.md'}")
@@ -205,26 +198,29 @@ def evaluate_random_anchors(
 
 def run_jobs(
     todo: Sequence[Job],
-    command: Callable[[Job], list[str]],
+    args: Callable[[Job], list[str]],
     jobs: int = 1,
     threads: int | None = None,
     log: Callable[[str], None] = _print,
     on_finished: Callable[[], object] | None = None,
+    backend: Backend | None = None,
 ) -> list[Job]:
-    """Run ``command(job)`` for every job of ``todo`` as its own process, ``jobs`` at a time.
+    """Run ``sb3-hgrn`` with the arguments ``args(job)`` for every job of ``todo`` as its own
+    process on ``backend`` (default: local processes), ``jobs`` at a time.
 
     Each process writes its output to its folder's ``train.log``. A job succeeds when its process
     exits with status 0 and leaves a complete ``eval.json``; a failed one is logged with the end of
     its log and the others go on. A job whose folder another process has locked (a run going on
     there, see :mod:`sb3_hgrn.experiments.lock`) is not started and counts as failed.
 
-    :param threads: cap of the children's OpenMP / MKL threads (``None``: left as they are).
+    :param threads: cap of the processes' OpenMP / MKL threads (``None``: left as they are).
     :param on_finished: called after every finished job, and when interrupted (e.g. to rewrite tables).
     :return: the jobs that failed.
     """
+    backend = backend or LocalBackend()
     todo = list(todo)
     failed: list[Job] = []
-    running: list[tuple[Job, subprocess.Popen, TextIO, float]] = []
+    running: list[tuple[Job, RunHandle, float]] = []
     finished = 0
     try:
         while todo or running:
@@ -236,23 +232,19 @@ def run_jobs(
                     log(f"{job.label()}: SKIPPED, {job.folder} is in use by {holder}")
                     continue
                 job.folder.mkdir(parents=True, exist_ok=True)
-                log_file = open(job.folder / LOG_FILE, "w", encoding="utf-8")  # noqa: SIM115
-                process = subprocess.Popen(
-                    command(job), stdout=log_file, stderr=subprocess.STDOUT, env=_child_env(threads)
-                )
-                running.append((job, process, log_file, time.time()))
+                running.append((job, backend.start(args(job), job.folder / LOG_FILE, threads), time.time()))
             time.sleep(0.2)
             for entry in list(running):
-                job, process, log_file, started = entry
-                if process.poll() is None:
+                job, run, started = entry
+                status = run.poll()
+                if status is None:
                     continue
                 running.remove(entry)
-                log_file.close()
                 finished += 1
                 done = read_eval(job.folder)
                 total = finished + len(todo) + len(running)
                 label = f"[{finished}/{total}] {job.label()}"
-                if process.returncode == 0 and done is not None:
+                if status == 0 and done is not None:
                     log(
                         f"{label}: team return {done['mean']:.1f} +- {done['std']:.1f} "
                         f"({time.time() - started:.0f} s)"
@@ -260,16 +252,14 @@ def run_jobs(
                 else:
                     failed.append(job)
                     log(
-                        f"{label}: FAILED (exit {process.returncode}); see {job.folder / LOG_FILE}:\n"
+                        f"{label}: FAILED (exit {status}); see {job.folder / LOG_FILE}:\n"
                         + _tail(job.folder / LOG_FILE)
                     )
                 if on_finished is not None:
                     on_finished()
     except KeyboardInterrupt:
-        for _, process, log_file, _ in running:
-            process.terminate()
-            process.wait()
-            log_file.close()
+        for _, run, _ in running:
+            run.stop()
         if on_finished is not None:
             on_finished()
         raise
@@ -283,14 +273,14 @@ def _tail(path: Path, lines: int = 15) -> str:
         return ""
 
 
-def _mean_std(values: list[float]) -> tuple[float | None, float | None]:
+def mean_std(values: list[float]) -> tuple[float | None, float | None]:
     """Mean and (population) standard deviation; ``None`` for no values, and std ``None`` for one."""
     if not values:
         return None, None
     return float(np.mean(values)), float(np.std(values)) if len(values) > 1 else None
 
 
-def _iqm_columns(values: list[float], reps: int | None) -> dict[str, float | None]:
+def iqm_columns(values: list[float], reps: int | None) -> dict[str, float | None]:
     """``iqm``, ``iqm_low``, ``iqm_high`` of one cell's seed scores (``None`` without scores or ``reps``)."""
     interval = iqm_interval(np.array(values).reshape(-1, 1), reps) if values and reps else None
     return interval_columns("iqm", interval)
@@ -308,19 +298,19 @@ def collect_rows(
         for preset in presets:
             evals = [e for e in (read_eval(run_folder(root, env, preset, seed)) for seed in seeds) if e]
             scores = [e["mean"] for e in evals]
-            mean, std = _mean_std(scores)
+            mean, std = mean_std(scores)
             eps = [
                 e["epsilon_evaluations"][COMPARISON_EPSILON]["mean"]
                 for e in evals
                 if COMPARISON_EPSILON in e.get("epsilon_evaluations", {})
             ]
-            eps_mean, eps_std = _mean_std(eps)
+            eps_mean, eps_std = mean_std(eps)
             paper = PAPER_TABLE1.get(preset, {}).get(env, (None, None))
             rows.append(
                 {
                     "env": env,
                     "preset": preset,
-                    **_iqm_columns(scores, reps),
+                    **iqm_columns(scores, reps),
                     "mean": mean,
                     "std": std,
                     "seeds_done": len(evals),
@@ -365,15 +355,15 @@ def write_tables(
     return rows
 
 
-def _number(value: float) -> str:
+def format_number(value: float) -> str:
     return f"{value:.0f}" if abs(value) >= 100 else f"{value:.1f}"
 
 
-def _cell(mean: float | None, std: float | None) -> str:
+def format_cell(mean: float | None, std: float | None) -> str:
     """``mean +- std``, the mean alone when there is no spread to show, ``-`` when missing."""
     if mean is None:
         return "-"
-    return _number(mean) if std is None else f"{_number(mean)} +- {_number(std)}"
+    return format_number(mean) if std is None else f"{format_number(mean)} +- {format_number(std)}"
 
 
 def markdown(
@@ -440,11 +430,15 @@ def markdown(
         cells = []
         for env in envs:
             row = by_key[(env, preset)]
-            ours = _cell(row["mean"], row["std"])
+            ours = format_cell(row["mean"], row["std"])
             if row["seeds_done"] and row["seeds_done"] < len(seeds):
                 ours += f" ({row['seeds_done']}/{len(seeds)})"
             paper = "-" if row["paper_mean"] is None else f"{row['paper_mean']:.0f} +- {row['paper_std']:.0f}"
-            cells += [format_interval(row["iqm"], row["iqm_low"], row["iqm_high"], _number), ours, paper]
+            cells += [
+                format_interval(row["iqm"], row["iqm_low"], row["iqm_high"], format_number),
+                ours,
+                paper,
+            ]
         lines.append(f"| {PRESET_TITLES.get(preset, preset)} | " + " | ".join(cells) + " |")
     if tables is None:
         lines += ["", "The IQM intervals and the robust statistics are computed when the sweep ends."]
@@ -457,7 +451,8 @@ def markdown(
     ]
     for preset in presets:
         cells = [
-            _cell(by_key[(env, preset)]["eps_0.3_mean"], by_key[(env, preset)]["eps_0.3_std"]) for env in envs
+            format_cell(by_key[(env, preset)]["eps_0.3_mean"], by_key[(env, preset)]["eps_0.3_std"])
+            for env in envs
         ]
         lines.append(f"| {PRESET_TITLES.get(preset, preset)} | " + " | ".join(cells) + " |")
     if tables is not None:

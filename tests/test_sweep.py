@@ -1,0 +1,222 @@
+"""Backends of the sweeps (local processes, Ray tasks) and the ``sb3-hgrn sweep`` grid."""
+
+import csv
+import json
+import os
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from sb3_hgrn.cli import main
+from sb3_hgrn.experiments.backends import LocalBackend
+from sb3_hgrn.experiments.config import ConfigError
+from sb3_hgrn.experiments.lock import lock_holder
+from sb3_hgrn.experiments.runs import read_eval
+from sb3_hgrn.experiments.sweep import (
+    Point,
+    SweepSettings,
+    check_settings,
+    grid_points,
+    parse_grid,
+    read_grid_file,
+    run_grid,
+    split_values,
+)
+from sb3_hgrn.experiments.table1 import format_number, run_sweep
+
+REPO = Path(__file__).resolve().parents[1]
+CHILD_ENV = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+TABLE = {"budget": "ci", "n_seeds": 1, "presets": ["dqn", "soft_hgrn"], "envs": ["uav_mbs_v0"], "jobs": 2}
+
+
+def test_grid_values_split_and_parse(tmp_path):
+    assert split_values("1e-3, 3e-4") == ["1e-3", "3e-4"]
+    assert split_values("[1,2],{a: 1, b: 2},x") == ["[1,2]", "{a: 1, b: 2}", "x"]
+    assert parse_grid(["learning_rate=1e-3,3e-4", "policy_kwargs.hidden_dim=16"]) == {
+        "learning_rate": [0.001, 0.0003],
+        "policy_kwargs.hidden_dim": [16],
+    }
+    for bad in ["learning_rate", "learning_rate=", "learning_rate=1e-3,", "=1,2"]:
+        with pytest.raises(ConfigError, match="Malformed --grid"):
+            parse_grid([bad])
+
+    path = tmp_path / "sweep.yml"
+    path.write_text("presets: dqn\nseeds: 2\ngrid: {learning_rate: [1e-3, 0.5]}\nenv_grid: {n_agents: [4]}\n")
+    spec = read_grid_file(path)
+    assert spec["grid"] == {"learning_rate": [0.001, 0.5]}  # YAML leaves 1e-3 a string; read as a number
+    assert spec["presets"] == ["dqn"] and spec["seeds"] == 2 and spec["env_grid"] == {"n_agents": [4]}
+    for text, message in [
+        ("grids: {}", "unknown key"),
+        ("grid: {learning_rate: 0.1}", "non-empty list"),
+        ("seeds: two", "positive number of seeds"),
+        ("grid: [1]", "must be a mapping"),
+    ]:
+        path.write_text(text)
+        with pytest.raises(ConfigError, match=message):
+            read_grid_file(path)
+
+
+def test_grid_points_name_their_folders():
+    points = grid_points(
+        {"learning_rate": [0.001, 1e-05], "policy_kwargs.hidden_dim": [8]}, {"n_agents": [4]}
+    )
+    assert [point.name() for point in points] == [
+        "learning_rate=0.001,policy_kwargs.hidden_dim=8,env.n_agents=4",
+        "learning_rate=1e-05,policy_kwargs.hidden_dim=8,env.n_agents=4",
+    ]
+    assert points[0].train_args() == [
+        "--param",
+        "learning_rate=0.001",
+        "policy_kwargs.hidden_dim=8",
+        "--env-param",
+        "n_agents=4",
+    ]
+    assert grid_points({}, {}) == [Point()] and Point().name() == "default" and Point().train_args() == []
+    with pytest.raises(ConfigError, match="twice"):
+        grid_points({"learning_rate": [0.001, 1e-3]}, {})
+
+
+def test_sweep_refuses_bad_input_before_training(tmp_path):
+    settings = SweepSettings("uav_mbs_v0", "ci")
+    with pytest.raises(ConfigError, match="takes no argument 'learning_rat'"):
+        run_grid(settings, ["soft_hgrn"], 1, {"learning_rat": [0.1]}, folder=tmp_path)
+    with pytest.raises(ConfigError, match="no values"):
+        run_grid(settings, ["soft_hgrn"], 1, {"learning_rate": []}, folder=tmp_path)
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_folder_keeps_the_shared_settings_of_its_sweep(tmp_path):
+    settings = SweepSettings("uav_mbs_v0", "ci", 600, {"policy_kwargs": {"hidden_dim": 8}}, {"n_users": 20})
+    check_settings(tmp_path, settings)
+    check_settings(tmp_path, settings)  # the same settings: accepted
+    recorded = (tmp_path / "sweep.yml").read_text()
+    for other in (
+        replace(settings, timesteps=900),
+        replace(settings, env_params={}),
+        replace(settings, budget="cpu"),
+    ):
+        with pytest.raises(ConfigError, match="other shared settings"):
+            check_settings(tmp_path, other)
+    assert (tmp_path / "sweep.yml").read_text() == recorded
+
+
+def test_sweep_trains_the_grid_with_local_processes_and_no_ray(tmp_path):
+    args = ["sweep", "--env", "uav_mbs_v0", "--budget", "ci", "--presets", "soft_hgrn", "--seeds", "1"]
+    args += ["--timesteps", "360", "--grid", "batch_size=4,8", "--env-param", "n_users=20"]
+    args += ["--folder", str(tmp_path), "--jobs", "2"]
+    script = f"import sys; from sb3_hgrn.cli import main; s = main({args!r}); "
+    script += "assert 'ray' not in sys.modules, 'ray imported'; sys.exit(s)"
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, env=CHILD_ENV, timeout=300
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "2 runs, 0 already done, 2 to run, 2 at a time (local backend)" in done.stdout
+
+    runs = {
+        point: tmp_path / point / "uav_mbs_v0" / "soft_hgrn" / "seed_0"
+        for point in ("batch_size=4", "batch_size=8")
+    }
+    for point, folder in runs.items():
+        done_eval = json.loads((folder / "eval.json").read_text())
+        assert done_eval["completed"] and done_eval["agent_steps"] == 360 and done_eval["n_agents"] == 6
+        config = (folder / "config.yml").read_text()
+        assert f"batch_size: {point[-1]}" in config and "n_users: 20" in config
+    rows = list(csv.DictReader((tmp_path / "sweep.csv").open()))
+    assert [(row["point"], row["preset"], row["batch_size"]) for row in rows] == [
+        ("batch_size=4", "soft_hgrn", "4"),
+        ("batch_size=8", "soft_hgrn", "8"),
+    ]
+    for row, folder in zip(rows, runs.values(), strict=True):
+        score = json.loads((folder / "eval.json").read_text())["mean"]
+        assert float(row["mean"]) == pytest.approx(score, abs=1e-4) and row["std"] == ""
+        assert row["iqm"] == row["iqm_low"] == row["iqm_high"] == row["mean"]  # one seed: no spread
+        assert row["seeds_done"] == row["seeds"] == "1" and row["agent_steps"] == "360"
+    table = (tmp_path / "sweep.md").read_text()
+    assert "# Sweep on `uav_mbs_v0`, budget `ci`" in table and "`n_users=20`" in table
+    assert f"| `batch_size=4` | soft_hgrn | {format_number(float(rows[0]['mean']))} [" in table
+
+    kept = (runs["batch_size=4"] / "eval.json").stat().st_mtime_ns
+    assert main(args) == 0  # everything is done: nothing runs again
+    assert (runs["batch_size=4"] / "eval.json").stat().st_mtime_ns == kept
+
+
+def test_backend_options_give_clear_errors(tmp_path, monkeypatch, capsys):
+    table = ["reproduce", "table1", "--budget", "ci", "--folder", str(tmp_path)]
+    with pytest.raises(SystemExit):
+        main([*table, "--cpus-per-run", "2"])
+    assert "apply to --backend ray only" in capsys.readouterr().err
+    sweep = ["sweep", "--env", "uav_mbs_v0", "--budget", "ci", "--folder", str(tmp_path / "sweep")]
+    grid_file = tmp_path / "grid.yml"
+    grid_file.write_text("grid: {learning_rat: [1e-3]}\n")
+    for extra, message in [
+        (["--grid", "batch_size"], "Malformed --grid 'batch_size'"),
+        (["--env-grid", "n_users=,"], "Malformed --env-grid"),
+        (["--grid-file", str(tmp_path / "none.yml")], "Cannot read the grid file"),
+        (["--presets", "nope"], "Unknown preset 'nope'"),
+        (["--grid-file", str(grid_file)], "takes no argument 'learning_rat'"),
+    ]:
+        with pytest.raises(SystemExit):
+            main([*sweep, *extra])
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "sweep").exists()
+    monkeypatch.setitem(sys.modules, "ray", None)  # as if ray were not installed
+    with pytest.raises(SystemExit):
+        main([*table, "--backend", "ray"])
+    assert "pip install 'sb3_hgrn[ray]'" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    ray = pytest.importorskip("ray")
+    ray.init(num_cpus=2, include_dashboard=False)
+    yield ray
+    ray.shutdown()
+
+
+def _layout(root: Path) -> set[str]:
+    """Relative paths under ``root``, with the TensorBoard event files (named by time and host) as one."""
+    return {
+        str(path.relative_to(root)) if "tfevents" not in path.name else str(path.parent.relative_to(root))
+        for path in root.rglob("*")
+    }
+
+
+def _rows(root: Path) -> list[dict[str, str]]:
+    rows = list(csv.DictReader((root / "table1.csv").open()))
+    for row in rows:
+        del row["wall_time_s"]
+    return rows
+
+
+def test_ray_backend_reproduces_the_local_table(local_ray, tmp_path):
+    from sb3_hgrn.experiments.backends import RayBackend
+
+    messages = []
+    assert run_sweep(**TABLE, folder=tmp_path / "local", threads=1, backend=LocalBackend()) == []
+    assert run_sweep(**TABLE, folder=tmp_path / "ray", backend=RayBackend(), log=messages.append) == []
+    assert any("2 to run, 2 at a time (ray backend)" in message for message in messages)
+    assert _layout(tmp_path / "local") == _layout(tmp_path / "ray")
+    assert len([path for path in _layout(tmp_path / "ray") if path.endswith("eval.json")]) == 3
+    assert _rows(tmp_path / "local") == _rows(tmp_path / "ray")
+    table = (tmp_path / "ray" / "table1.md").read_text().split("Summed wall time")[0]
+    assert table == (tmp_path / "local" / "table1.md").read_text().split("Summed wall time")[0]
+
+
+def test_a_stopped_ray_task_stops_its_run(local_ray, tmp_path):
+    from sb3_hgrn.experiments.backends import RayBackend
+
+    args = ["train", "--env", "uav_mbs_v0", "--preset", "soft_hgrn", "--budget", "ci", "--seed", "0"]
+    args += ["--timesteps", "1200000", "--threads", "1", "--folder", str(tmp_path)]
+    folder = tmp_path / "uav_mbs_v0" / "soft_hgrn" / "seed_0"
+    run = RayBackend().start(args, tmp_path / "train.log", threads=1)
+    started = time.time()
+    while lock_holder(folder) is None:  # the run holds its folder's lock once it has started
+        assert run.poll() is None and time.time() - started < 120, (tmp_path / "train.log").read_text()
+        time.sleep(0.2)
+    started = time.time()
+    run.stop()
+    assert time.time() - started < 20 and lock_holder(folder) is None and read_eval(folder) is None
