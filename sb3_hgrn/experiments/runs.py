@@ -53,7 +53,7 @@ from sb3_hgrn.experiments.callbacks import (
     TEAM_RETURNS_FILE,
     AtomicCheckpointCallback,
     TeamMonitorCallback,
-    replay_buffer_path,
+    checkpoint_companion,
     rewind_team_returns,
 )
 from sb3_hgrn.experiments.config import ConfigError, RunConfig
@@ -315,12 +315,14 @@ def train_run(
             model = PRESETS[config.preset][0].load(
                 checkpoint, env=env, device=device, tensorboard_log=tensorboard_log, verbose=verbose
             )
-            rewind_team_returns(folder / TEAM_RETURNS_FILE, model.num_timesteps)
-            replay = _load_replay_buffer(model, replay_buffer_path(checkpoint))
+            rewind_team_returns(folder / TEAM_RETURNS_FILE, model._episode_num)
+            replay = _load_replay_buffer(model, checkpoint_companion(checkpoint, "replay_buffer"))
+            exact = _load_training_state(model, checkpoint_companion(checkpoint, "training_state"))
             if verbose:
                 print(
                     f"Resuming from {checkpoint} ({model.num_timesteps} agent-steps done, "
-                    f"{'its' if replay else 'an empty'} replay buffer)"
+                    f"{'its' if replay else 'an empty'} replay buffer, "
+                    f"{'its env state' if exact else 'the envs reset'})"
                 )
         config.extra = _run_figures(config, env, model)
         write_text_atomically(folder / CONFIG_FILE, yaml.safe_dump(config.to_dict(), sort_keys=False))
@@ -374,6 +376,22 @@ def _load_replay_buffer(model: GraphOffPolicyAlgorithm, path: Path) -> bool:
         model.load_replay_buffer(path)
     except (pickle.UnpicklingError, EOFError, AttributeError, TypeError, ValueError) as error:
         warnings.warn(f"Skipping the replay buffer {path}, which cannot be loaded: {error}", stacklevel=2)
+        return False
+    return True
+
+
+def _load_training_state(model: GraphOffPolicyAlgorithm, path: Path) -> bool:
+    """Restore the training state at ``path`` (env copies, last observation, recurrent state, random
+    states) into ``model``; whether it was restored (one that is damaged or does not fit is skipped
+    with a warning, and the envs reset when training starts)."""
+    if not path.is_file():
+        return False
+    try:
+        with open(path, "rb") as file:
+            state = pickle.load(file)
+        model.set_training_state(state)
+    except (pickle.UnpicklingError, EOFError, AttributeError, KeyError, TypeError, ValueError) as error:
+        warnings.warn(f"Skipping the training state {path}, which cannot be loaded: {error}", stacklevel=2)
         return False
     return True
 
