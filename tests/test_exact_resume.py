@@ -28,7 +28,7 @@ REPO = Path(__file__).resolve().parents[1]
 HYPERPARAMS = REPO / "sb3_hgrn" / "hyperparams"
 
 N_AGENTS, EPISODE = 5, 20  # Surviving's ci episodes: 20 env steps
-TOTAL, SAVE_FREQ, KILLED_AT = 1000, 50, 360  # agent-steps
+TOTAL, SAVE_FREQ, RESUMED_AT = 1000, 50, 360  # agent-steps
 TRAIN = [
     "train", "--env", "surviving_v0", "--preset", "soft_hgrn", "--budget", "ci", "--verbose", "0",
     "--threads", "1", "--timesteps", str(TOTAL), "--save-freq", str(SAVE_FREQ), "--save-replay-buffer",
@@ -129,15 +129,16 @@ def team_returns(folder: Path) -> list[str]:
     return [row.rsplit(",", 1)[0] for row in rows]
 
 
-def kill_after_checkpoint(root: Path, steps: int) -> None:
-    """Run the test run in a subprocess and SIGKILL it once its checkpoint at ``steps`` exists; then
-    keep the checkpoints up to ``steps`` only, as if the kill came right after it."""
+def kill_and_rewind(root: Path, steps: int, killed_at: int) -> None:
+    """Run the test run in a subprocess and SIGKILL it once it has a checkpoint at ``killed_at``
+    agent-steps or later; then keep the checkpoints up to ``steps`` only, as if the kill came right
+    after that one (``team_returns.csv`` keeps the episodes that ended after it)."""
     checkpoints = run_of(root) / "checkpoints"
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
     process = subprocess.Popen([sys.executable, "-m", "sb3_hgrn", *TRAIN, "--folder", str(root)], env=env)
     try:
         deadline = time.time() + 60
-        while not (checkpoints / f"model_{steps}_steps.zip").exists():
+        while max(map(checkpoint_steps, checkpoints.glob("model_*_steps.zip")), default=0) < killed_at:
             assert process.poll() is None and time.time() < deadline, "the run ended before its kill"
             time.sleep(0.01)
     finally:
@@ -150,15 +151,17 @@ def kill_after_checkpoint(root: Path, steps: int) -> None:
 
 
 def test_a_killed_run_resumed_with_its_replay_buffer_is_bit_identical(uninterrupted, tmp_path):
-    """Killed in the middle of an episode and of a collection round's schedule, then resumed: the
-    final model, replay buffer, team returns and evaluation equal the uninterrupted run's."""
-    assert (KILLED_AT // N_AGENTS) % EPISODE != 0  # the envs are mid-episode at the checkpoint
-    kill_after_checkpoint(tmp_path, KILLED_AT)
+    """Killed after an episode end and resumed from a checkpoint before it, in the middle of an
+    episode (and due in the middle of a collection round): the final model, replay buffer, team
+    returns and evaluation equal the uninterrupted run's."""
+    assert (RESUMED_AT // N_AGENTS) % EPISODE != 0  # the envs are mid-episode at the checkpoint
+    kill_and_rewind(tmp_path, RESUMED_AT, killed_at=RESUMED_AT + EPISODE * N_AGENTS)
+    assert len(team_returns(run_of(tmp_path))) > RESUMED_AT // N_AGENTS // EPISODE  # rows to drop
     with pytest.warns(UserWarning, match="Taking over the lock"):
         assert main([*TRAIN, "--folder", str(tmp_path)]) == 0
     resumed = run_of(tmp_path)
     results = json.loads((resumed / "eval.json").read_text())
-    assert results["resumed_from"] == f"model_{KILLED_AT}_steps.zip"
+    assert results["resumed_from"] == f"model_{RESUMED_AT}_steps.zip"
     want, got = (SoftHGRN.load(folder / "model.zip") for folder in (uninterrupted, resumed))
     assert want.num_timesteps == got.num_timesteps == TOTAL
     for name, tensor in want.policy.state_dict().items():
