@@ -28,7 +28,7 @@ REPO = Path(__file__).resolve().parents[1]
 HYPERPARAMS = REPO / "sb3_hgrn" / "hyperparams"
 
 N_AGENTS, EPISODE = 5, 20  # Surviving's ci episodes: 20 env steps
-TOTAL, SAVE_FREQ, RESUMED_AT = 1000, 50, 360  # agent-steps
+TOTAL, SAVE_FREQ, RESUMED_AT = 700, 50, 360  # agent-steps
 TRAIN = [
     "train", "--env", "surviving_v0", "--preset", "soft_hgrn", "--budget", "ci", "--verbose", "0",
     "--threads", "1", "--timesteps", str(TOTAL), "--save-freq", str(SAVE_FREQ), "--save-replay-buffer",
@@ -96,7 +96,7 @@ def test_an_env_that_cannot_be_pickled_is_named():
 def test_checkpoints_of_an_unpicklable_env_warn_once_and_hold_no_training_state(tmp_path):
     env = ci_env("surviving_v0", 1, seed=0)
     env.envs[0].lock = threading.Lock()  # an attribute pickle refuses
-    model = SoftHGRN("GraphPolicy", env, batch_size=4, learning_starts=0, train_freq=4, seed=0)
+    model = SoftHGRN("GraphPolicy", env, batch_size=4, learning_starts=10_000, train_freq=4, seed=0)
     save_freq = 8  # vec-steps, two rounds of train_freq
     callback = AtomicCheckpointCallback(save_freq, str(tmp_path), name_prefix="model")
     with pytest.warns(UserWarning, match="hold no training state") as warned:

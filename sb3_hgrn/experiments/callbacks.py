@@ -178,6 +178,7 @@ class AtomicCheckpointCallback(CheckpointCallback):
             print(f"Saving model checkpoint to {path}")
 
     def _save_training_state(self, path: Path) -> None:
+        """Pickle the model's training state to ``path``; warn once and stop when the env cannot be."""
         try:
             state = self.model.get_training_state()
         except UnpicklableEnvError as error:

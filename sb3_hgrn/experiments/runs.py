@@ -6,8 +6,10 @@ A run folder (``<root>/<env>/<preset>/seed_<seed>/``) holds::
                         budget, seed, versions)
     tensorboard/        SB3's TensorBoard logs (when tensorboard is installed)
     team_returns.csv    one "r,l,t" row per training team episode, after a "#{json}" line (as SB3's Monitor)
-    checkpoints/        model_<agent-steps>_steps.zip every --save-freq agent-steps (optional), with
-                        --save-replay-buffer also model_replay_buffer_<agent-steps>_steps.pkl
+    checkpoints/        model_<agent-steps>_steps.zip every --save-freq agent-steps (optional) with
+                        model_training_state_<agent-steps>_steps.pkl (env copies, last observation,
+                        recurrent and random states), with --save-replay-buffer also
+                        model_replay_buffer_<agent-steps>_steps.pkl
     model.zip           the final model
     eval.json           the final evaluation; its presence marks the run as complete
     .lock, .lock.pid    the lock of the process working in the folder, and its pid
@@ -291,10 +293,12 @@ def train_run(
 
     The env and the model are built first, so bad arguments fail before the folder is touched. Then
     :func:`prepare_run_folder` decides: a killed run of the same configuration resumes from its latest
-    checkpoint (``team_returns.csv`` rewound to the checkpoint) with the replay buffer saved beside it,
-    if any, else with an empty one; a complete run or one of another configuration is refused unless
-    ``overwrite``, which moves the old run aside and removes it once the new run has written its
-    ``eval.json``.
+    checkpoint (``team_returns.csv`` rewound to the checkpoint's episodes) with the replay buffer saved
+    beside it, if any, else with an empty one, and with its training state (env copies, last
+    observation, recurrent and random states), if any, else with the envs reset; with both the
+    resumed run is bit-identical to an uninterrupted one. A complete run or one of another
+    configuration is refused unless ``overwrite``, which moves the old run aside and removes it once
+    the new run has written its ``eval.json``.
 
     :param save_freq: save a checkpoint every this many agent-steps (``None``: no checkpoints).
     :param log_interval: team episodes between log dumps.
