@@ -124,11 +124,12 @@ def kill_during_training(root: Path, rng: random.Random) -> tuple[bool, str]:
 
 
 def kill_during_checkpoint_write(root: Path, rng: random.Random) -> tuple[bool, str]:
-    """Checkpoint (with the replay buffer) every vec-step, so that a kill lands in a write."""
+    """Checkpoint (with the replay buffer) every collection round (``train_freq=4`` vec-steps: 50 in
+    the run), so that a kill lands in a write."""
     extra = ("--save-freq", "6", "--save-replay-buffer")
     process = start_train(root, *extra)
     checkpoints = run_of(root) / "checkpoints"
-    after = rng.randint(1, 60)  # checkpoints written before the kill, so that there is one to resume from
+    after = rng.randint(1, 40)  # checkpoints written before the kill, so that there is one to resume from
 
     def writing() -> bool:
         return len(list(checkpoints.glob("*.zip"))) >= after and any(checkpoints.glob(".*.tmp"))

@@ -56,6 +56,8 @@ def test_train_writes_the_run_folder(surviving_run):
     assert sorted(p.name for p in (surviving_run / "checkpoints").iterdir()) == [
         "model_300_steps.zip",
         "model_600_steps.zip",
+        "model_training_state_300_steps.pkl",
+        "model_training_state_600_steps.pkl",
     ]
 
     config = yaml.safe_load((surviving_run / "config.yml").read_text())

@@ -128,13 +128,15 @@ def test_overwrite_moves_the_old_run_aside_until_the_new_one_finishes(root, monk
     assert (aside / "eval.json").read_bytes() == old_eval
 
 
-def test_rewind_team_returns_drops_rows_after_the_checkpoint(tmp_path):
+def test_rewind_team_returns_keeps_the_episodes_of_the_checkpoint(tmp_path):
     path = tmp_path / "team_returns.csv"
     header = '#{"t_start": 0, "env_id": "x", "n_agents": 5, "n_copies": 1}\nr,l,t\n'
     path.write_text(header + "1.0,20,0.1\n2.0,20,0.2\n3.0,20,0.3\n4.0,2")  # the last row cut short
-    assert rewind_team_returns(path, 200) == 2
+    assert rewind_team_returns(path, 2) == 2
     assert path.read_text() == header + "1.0,20,0.1\n2.0,20,0.2\n"
-    assert rewind_team_returns(path, 1000) == 0 and rewind_team_returns(tmp_path / "missing.csv", 0) == 0
+    path.write_text(header + "1.0,20,0.1\n2.0,2")
+    assert rewind_team_returns(path, 5) == 1 and path.read_text() == header + "1.0,20,0.1\n"
+    assert rewind_team_returns(path, 5) == 0 and rewind_team_returns(tmp_path / "missing.csv", 0) == 0
 
 
 def cut_short(path: Path) -> None:
@@ -239,7 +241,8 @@ def test_a_kill_while_saving_a_checkpoint_leaves_the_earlier_ones_whole(root, mo
     monkeypatch.setattr(SoftHGRN, "save", second_save_cut_short)
     with pytest.raises(Interrupted):
         main([*train_args(root), "--overwrite"])
-    assert sorted(os.listdir(folder / "checkpoints")) == ["model_100_steps.zip"]
+    assert sorted(path.name for path in (folder / "checkpoints").glob("*.zip")) == ["model_100_steps.zip"]
+    assert not list((folder / "checkpoints").glob(".*"))  # no partial file
     monkeypatch.undo()
     assert main(train_args(root)) == 0
     assert json.loads((folder / "eval.json").read_text())["resumed_from"] == "model_100_steps.zip"
@@ -429,12 +432,12 @@ def test_a_run_resumed_with_its_replay_buffer_continues_it(tmp_path):
     """An uninterrupted run's buffer at 100 agent-steps is the start of a run resumed from there."""
     assert main(train_args(tmp_path, 200, "--save-replay-buffer")) == 0
     checkpoints = run_of(tmp_path) / "checkpoints"
-    assert sorted(path.name for path in checkpoints.glob("*.pkl")) == [
+    assert sorted(path.name for path in checkpoints.glob("*replay_buffer*")) == [
         "model_replay_buffer_100_steps.pkl", "model_replay_buffer_200_steps.pkl"
     ]  # fmt: skip
     at_100, at_200 = (load_from_pkl(checkpoints / f"model_replay_buffer_{n}_steps.pkl") for n in (100, 200))
-    assert (at_100.pos, at_200.pos) == (19, 39)  # a checkpoint's own vec-step is stored after it
-    assert_same_rows(at_100, at_200, 19)
+    assert (at_100.pos, at_200.pos) == (20, 40)  # every vec-step up to the checkpoint
+    assert_same_rows(at_100, at_200, 20)
     as_killed(run_of(tmp_path))
     (checkpoints / "model_200_steps.zip").unlink()
     captured = {}
@@ -447,11 +450,11 @@ def test_a_run_resumed_with_its_replay_buffer_continues_it(tmp_path):
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(GraphOffPolicyAlgorithm, "learn", record_buffer)
         assert main(train_args(tmp_path, 200, "--save-replay-buffer")) == 0
-    assert captured["buffer"].pos == 19
+    assert captured["buffer"].pos == 20
     assert_same_rows(captured["buffer"], at_100, captured["buffer"].buffer_size)
     resumed = load_from_pkl(checkpoints / "model_replay_buffer_200_steps.pkl")
-    assert resumed.pos == 19 + 19
-    assert_same_rows(resumed, at_200, 19)
+    assert resumed.pos == 40
+    assert_same_rows(resumed, at_200, resumed.buffer_size)  # with the training state: exactly
 
 
 BAD_OBSERVATIONS = [

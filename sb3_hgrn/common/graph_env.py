@@ -104,6 +104,17 @@ class GraphParallelEnv(ParallelEnv):
         """The communication graph of the current state (see :meth:`neighbors`)."""
         raise NotImplementedError
 
+    # --- pickling ---------------------------------------------------------------------------
+    def _bind_views(self) -> None:
+        """Set the attributes that are views into other arrays (none here). Subclasses that keep
+        such views set them here, from ``__init__``: pickling copies every array on its own, so
+        :meth:`__setstate__` calls this again to make them views of the unpickled arrays."""
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        """Restore a pickled env, its views into its arrays bound again (see :meth:`_bind_views`)."""
+        self.__dict__.update(state)
+        self._bind_views()
+
     def _draw(self) -> np.ndarray:
         """The current state as an ``(height, width, 3)`` uint8 image (subclasses that render)."""
         raise NotImplementedError

@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import os
 import pathlib
+import random
 import sys
 import time
 from collections import deque
@@ -31,6 +32,12 @@ from sb3_hgrn.common.files import check_model_file, saved_policy_module
 from sb3_hgrn.common.policies import GraphPolicy, check_graph_spaces
 from sb3_hgrn.common.temperature import TemperatureController, group_means, target_entropy
 from sb3_hgrn.common.vec_env import make_graph_vec_env
+
+TRAINING_STATE_KEYS = frozenset(
+    "num_timesteps env last_obs last_episode_starts last_hidden team_episodes "
+    "torch_rng cuda_rng numpy_rng python_rng".split()
+)
+"""The entries of :meth:`GraphOffPolicyAlgorithm.get_training_state`."""
 
 
 def check_graph_env(env: Any) -> VecEnv:
@@ -405,6 +412,61 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
             )
         buffer.device = self.device
         self.replay_buffer = buffer
+
+    def get_training_state(self) -> dict[str, Any]:
+        """What a model zip and its replay buffer leave out of a run in progress, so that
+        :meth:`set_training_state` resumes it exactly: the env's state (:meth:`GraphVecEnv.get_state
+        <sb3_hgrn.common.vec_env.GraphVecEnv.get_state>`, a pickle), the last observation, episode
+        starts ``(n_envs,)`` and recurrent state ``(n_envs, state_dim)``, the recent team episodes of
+        the logs and the random states of torch, numpy and Python.
+
+        Take it between two rounds of ``collect_rollouts`` (where ``learn`` has trained on all it
+        collected): inside one, the last vec-step is not stored yet. Raises
+        :class:`~sb3_hgrn.common.vec_env.UnpicklableEnvError` when the env cannot be pickled.
+        """
+        if self.env is None or self._last_obs is None:
+            raise ValueError("The model has no env in progress to take the training state of.")
+        return {
+            "num_timesteps": self.num_timesteps,
+            "env": self.env.get_state(),
+            "last_obs": {key: value.copy() for key, value in self._last_obs.items()},
+            "last_episode_starts": self._last_episode_starts.copy(),
+            "last_hidden": self._last_hidden.copy(),
+            "team_episodes": list(self._team_episodes),
+            "torch_rng": th.get_rng_state().numpy(),
+            "cuda_rng": [state.numpy() for state in th.cuda.get_rng_state_all()]
+            if th.cuda.is_initialized()
+            else [],
+            "numpy_rng": np.random.get_state(),
+            "python_rng": random.getstate(),
+        }
+
+    def set_training_state(self, state: dict[str, Any]) -> None:
+        """Restore a :meth:`get_training_state` into this model (loaded from the zip saved with it),
+        so that ``learn(..., reset_num_timesteps=False)`` goes on as the saved run would have.
+
+        A state that lacks an entry or was taken at another step than the model's ``num_timesteps``
+        raises a ``ValueError``, one of another env layout too (before anything has changed).
+        """
+        missing = sorted(TRAINING_STATE_KEYS - set(state))
+        if missing:
+            raise ValueError(f"The training state lacks {', '.join(missing)}.")
+        if state["num_timesteps"] != self.num_timesteps:
+            raise ValueError(
+                f"The training state was taken at agent-step {state['num_timesteps']}, the model is at "
+                f"{self.num_timesteps}."
+            )
+        self.env.set_state(state["env"])  # checks the layout before it changes anything
+        self._last_obs = state["last_obs"]
+        self._last_episode_starts = state["last_episode_starts"]
+        self._last_hidden = state["last_hidden"]
+        self._team_episodes.clear()
+        self._team_episodes.extend(state["team_episodes"])
+        th.set_rng_state(th.from_numpy(state["torch_rng"]))
+        if state["cuda_rng"] and th.cuda.is_available():
+            th.cuda.set_rng_state_all([th.from_numpy(rng) for rng in state["cuda_rng"]])
+        np.random.set_state(state["numpy_rng"])
+        random.setstate(state["python_rng"])
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return ["policy", *self._optimizer_names(), "temperature.optimizer"], []

@@ -20,10 +20,12 @@ loads onto an env with M agents.
 from __future__ import annotations
 
 import importlib
+import pickle
 from collections.abc import Callable, Sequence
 from types import ModuleType
 from typing import Any
 
+import cloudpickle
 import gymnasium as gym
 import numpy as np
 from pettingzoo import AECEnv, ParallelEnv
@@ -36,6 +38,11 @@ from sb3_hgrn.common.wrappers import as_parallel_env
 
 REGISTERED_ENVS = ("surviving_v0", "uav_mbs_v0", "pursuit_v0", "ctc_v0")
 NEIGHBOR_INDEX_HIGH = np.iinfo(np.int32).max
+
+
+class UnpicklableEnvError(TypeError):
+    """An env copy whose state cannot be pickled (e.g. one driving a C library), so
+    :meth:`GraphVecEnv.get_state` cannot save it."""
 
 
 class ParallelEnvAdapter(GraphParallelEnv):
@@ -322,6 +329,51 @@ class GraphVecEnv(VecEnv):
     def close(self) -> None:
         for env in self.envs:
             env.close()
+
+    # --- state of the copies, for an exact resume ------------------------------------------------
+    def get_state(self) -> bytes:
+        """The state of every copy and of this VecEnv's own counters, as a pickle (cloudpickle).
+
+        The copies are pickled whole (their random generators, positions, step counters, ...), with
+        the running team returns and episode lengths and the seeds and options of the next
+        :meth:`reset`; :meth:`set_state` on a VecEnv of the same env makes it step on exactly as this
+        one would. Raises :class:`UnpicklableEnvError` naming the env when a copy cannot be pickled.
+        """
+        state = {
+            "n_copies": self.n_copies,
+            "n_agents": self.n_agents,
+            "envs": self.envs,
+            "team_returns": self._team_returns,
+            "episode_lengths": self._episode_lengths,
+            "seeds_per_copy": self._seeds_per_copy,
+            "options": self._options,
+        }
+        try:
+            return cloudpickle.dumps(state)
+        except (pickle.PicklingError, TypeError, ValueError, AttributeError) as error:
+            raise UnpicklableEnvError(
+                f"The state of {type(self.envs[0]).__name__} cannot be pickled: {error}"
+            ) from error
+
+    def set_state(self, state: bytes) -> None:
+        """Replace the copies and counters by those of :meth:`get_state` (the current copies are
+        closed); a state of another copy or agent count raises a ``ValueError`` saying so.
+
+        Unpickling can run code: give it only states from a trusted source.
+        """
+        loaded = pickle.loads(state)
+        saved, own = (loaded["n_copies"], loaded["n_agents"]), (self.n_copies, self.n_agents)
+        if saved != own:
+            raise ValueError(
+                f"The env state holds {saved[0]} copies of {saved[1]} agents, this VecEnv {own[0]} "
+                f"of {own[1]}."
+            )
+        self.close()
+        self.envs = loaded["envs"]
+        self._team_returns = loaded["team_returns"]
+        self._episode_lengths = loaded["episode_lengths"]
+        self._seeds_per_copy = loaded["seeds_per_copy"]
+        self._options = loaded["options"]
 
     def render(self, mode: str | None = None) -> np.ndarray | None:
         """Render copy 0 (its ``render_mode`` is set through ``env_kwargs``)."""

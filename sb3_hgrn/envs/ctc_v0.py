@@ -267,8 +267,7 @@ class TreasureCollectionEnv(GraphParallelEnv):
         binary = binary_table(size, COORDINATE_BITS)
         self._layers = np.zeros((N_LAYERS, n_cells), dtype=np.int8)
         self._layers[X_BITS:] = np.concatenate([binary[rows], binary[columns]], axis=1).T
-        self._flat_layers = self._layers.reshape(-1)
-        self._treasure = self._layers[RED_TREASURE : BLUE_TREASURE + 1]  # (2, n_cells) view
+        self._bind_views()
 
         steps = np.arange(-(WINDOW // 2), WINDOW // 2 + 1)
         window = (steps[:, None] * size + steps[None, :]).ravel()
@@ -330,6 +329,12 @@ class TreasureCollectionEnv(GraphParallelEnv):
             gym.spaces.Box(low=hunter_low, high=hunter_high, dtype=np.int8),
             gym.spaces.Box(low=bank_low, high=bank_high, dtype=np.int8),
         )
+
+    def _bind_views(self) -> None:
+        """``_flat_layers``: ``_layers`` flat ``(N_LAYERS * n_cells,)``; ``_treasure``: its two treasure
+        rows ``(2, n_cells)``."""
+        self._flat_layers = self._layers.reshape(-1)
+        self._treasure = self._layers[RED_TREASURE : BLUE_TREASURE + 1]
 
     # --- array API ------------------------------------------------------------------------------
     def reset_arrays(self, seed: int | None = None, options: dict | None = None) -> np.ndarray:

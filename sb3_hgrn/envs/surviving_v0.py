@@ -152,8 +152,7 @@ class SurvivingEnv(GraphParallelEnv):
         binary = binary_table(size, coordinate_bits)
         self._layers = np.zeros((2 + 2 * coordinate_bits, n_cells), dtype=np.int8)
         self._layers[2:] = np.concatenate([binary[rows], binary[columns]], axis=1).T
-        self._food = self._layers[0]
-        self._occupancy = self._layers[1]
+        self._bind_views()
 
         window_steps = np.arange(-(WINDOW // 2), WINDOW // 2 + 1)
         window = (window_steps[:, None] * size + window_steps[None, :]).ravel()
@@ -197,6 +196,11 @@ class SurvivingEnv(GraphParallelEnv):
         high[self._map_window_slice] = MAX_FOOD_PER_CELL
         high[-1] = MAX_STORE
         return gym.spaces.Box(low=low, high=high, dtype=np.int8)
+
+    def _bind_views(self) -> None:
+        """``_food`` and ``_occupancy``: the first two rows of ``_layers`` ``(n_cells,)``."""
+        self._food = self._layers[0]
+        self._occupancy = self._layers[1]
 
     # --- array API ------------------------------------------------------------------------------
     def reset_arrays(self, seed: int | None = None, options: dict | None = None) -> np.ndarray:

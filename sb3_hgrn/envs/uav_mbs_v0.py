@@ -245,7 +245,7 @@ class UAVMBSEnv(GraphParallelEnv):
         rows, columns = np.divmod(np.arange(n_cells), RASTER_SIZE)
         valid = (rows >= FIRST_CELL) & (rows <= LAST_CELL) & (columns >= FIRST_CELL) & (columns <= LAST_CELL)
         self._layers[2] = ~valid
-        self._uav_count_layer, self._user_count_layer = self._layers[0], self._layers[1]
+        self._bind_views()
 
         offsets = view_offsets()
         flat_offsets = offsets[:, 0] * RASTER_SIZE + offsets[:, 1]
@@ -281,6 +281,10 @@ class UAVMBSEnv(GraphParallelEnv):
             low[neighbor_slice].reshape(COMPACT_NEIGHBORS, 4)[:, 2:] = -2.0
             high[neighbor_slice].reshape(COMPACT_NEIGHBORS, 4)[:, 2:] = 2.0
         return gym.spaces.Box(low=low, high=high, dtype=np.float32)
+
+    def _bind_views(self) -> None:
+        """``_uav_count_layer``, ``_user_count_layer``: the first two rows of ``_layers`` ``(n_cells,)``."""
+        self._uav_count_layer, self._user_count_layer = self._layers[0], self._layers[1]
 
     # --- array API ------------------------------------------------------------------------------
     def reset_arrays(self, seed: int | None = None, options: dict | None = None) -> np.ndarray:

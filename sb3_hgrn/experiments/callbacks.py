@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import os
+import pickle
 import time
+import warnings
 from pathlib import Path
 from typing import IO, Any
 
@@ -12,6 +15,7 @@ import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback
 
 from sb3_hgrn.common.files import save_atomically, save_model_atomically, write_text_atomically
+from sb3_hgrn.common.vec_env import UnpicklableEnvError
 
 TEAM_RETURNS_FILE = "team_returns.csv"
 
@@ -76,29 +80,28 @@ class TeamMonitorCallback(BaseCallback):
             self.file = None
 
 
-def rewind_team_returns(path: str | os.PathLike, agent_steps: int) -> int:
-    """Drop the rows of a ``team_returns.csv`` logged after ``agent_steps`` (a resumed run's
-    checkpoint), so the resumed run appends to the episodes its checkpoint has seen.
-
-    A row's agent-steps are the env steps of all episodes up to it times the agent count (as the
-    figures count them): exact when the env copies end their episodes together, otherwise a few rows
-    of the last vec-steps may stay. A missing or unreadable file is left as it is.
+def rewind_team_returns(path: str | os.PathLike, n_episodes: int) -> int:
+    """Keep the first ``n_episodes`` rows of a ``team_returns.csv``: those of the team episodes a
+    resumed run's checkpoint has seen (its model's episode count), so the resumed run appends to
+    exactly them. The rows logged after the checkpoint go, as does a row cut short by a kill and
+    anything after it. A missing or unreadable file is left as it is.
 
     :return: the number of rows dropped (with a row cut short by a kill).
     """
     try:
         with open(path, encoding="utf-8") as file:
             lines = file.read().splitlines()
-        n_agents = int(json.loads(lines[0][1:])["n_agents"])
-    except (OSError, ValueError, IndexError, KeyError, TypeError):
+    except OSError:
         return 0
-    lengths = []
+    if len(lines) < 2 or not lines[0].startswith("#"):
+        return 0
+    whole = 0
     for line in lines[2:]:
         fields = line.split(",")
         if len(fields) != 3 or not fields[1].isdigit():  # a row cut short by a kill ends the table
             break
-        lengths.append(int(fields[1]))
-    kept = int(np.searchsorted(np.cumsum(lengths) * n_agents, agent_steps, side="right"))
+        whole += 1
+    kept = min(n_episodes, whole)
     if kept < len(lines) - 2:
         write_text_atomically(path, "\n".join(lines[: 2 + kept]) + "\n")
     return len(lines) - 2 - kept
@@ -106,14 +109,25 @@ def rewind_team_returns(path: str | os.PathLike, agent_steps: int) -> int:
 
 class AtomicCheckpointCallback(CheckpointCallback):
     """SB3's ``CheckpointCallback`` (``<save_path>/<name_prefix>_<agent-steps>_steps.zip`` every
-    ``save_freq`` calls) whose files are written to a temporary file and renamed, so a process killed
-    while saving leaves the previous checkpoints whole and no partial file.
+    ``save_freq`` vec-steps) whose files are written to a temporary file and renamed, so a process
+    killed while saving leaves the previous checkpoints whole and no partial file, and whose
+    checkpoints hold what an exact resume needs.
 
-    With ``save_replay_buffer`` the model's replay buffer goes beside each checkpoint, as
-    ``<name_prefix>_replay_buffer_<agent-steps>_steps.pkl`` (see :func:`replay_buffer_path`), written
-    before the zip: a checkpoint zip that exists has its buffer.
+    A checkpoint falls due when the vec-steps since the run's start (``num_timesteps`` over the slot
+    count, so a resumed run keeps the schedule) reach a multiple of ``save_freq``. It is written at
+    the end of the collection round it falls in (``train_freq`` vec-steps), once ``learn`` has
+    trained on that round: at the start of the next round or at the end of training. There the
+    model, its replay buffer and the env agree (inside a round SB3 runs the callbacks before it
+    stores the last vec-step), and the file names carry the agent-steps done by then.
 
-    :param save_freq: save a checkpoint every ``save_freq`` calls (vec-steps).
+    Beside each zip go, with ``save_replay_buffer``, the replay buffer
+    (``<name_prefix>_replay_buffer_<agent-steps>_steps.pkl``) and always the model's
+    :meth:`~sb3_hgrn.common.off_policy.GraphOffPolicyAlgorithm.get_training_state` as a pickle
+    (``<name_prefix>_training_state_<agent-steps>_steps.pkl``; see :func:`checkpoint_companion`),
+    both written before the zip: a checkpoint zip that exists has them. An env that cannot be pickled
+    (e.g. Pursuit's MAgent) gets no training state, with one warning.
+
+    :param save_freq: a checkpoint every ``save_freq`` vec-steps.
     :param save_path: folder of the checkpoints.
     :param name_prefix: start of the file names.
     :param save_replay_buffer: also save the replay buffer.
@@ -134,21 +148,54 @@ class AtomicCheckpointCallback(CheckpointCallback):
             save_replay_buffer=save_replay_buffer,
             verbose=verbose,
         )
+        self.due = False
+        self.saves_training_state = True
 
     def _on_step(self) -> bool:
-        if self.n_calls % self.save_freq == 0:
-            if self.save_replay_buffer and getattr(self.model, "replay_buffer", None) is not None:
-                save_atomically(self.model.save_replay_buffer, self._checkpoint_path("replay_buffer_", "pkl"))
-            path = self._checkpoint_path(extension="zip")
-            save_model_atomically(self.model, path)
-            if self.verbose >= 2:
-                print(f"Saving model checkpoint to {path}")
+        if self.num_timesteps % (self.save_freq * self.training_env.num_envs) == 0:
+            self.due = True
         return True
 
+    def _on_rollout_start(self) -> None:
+        if self.due:
+            self._save()
 
-def replay_buffer_path(checkpoint: str | os.PathLike) -> Path:
-    """The replay buffer :class:`AtomicCheckpointCallback` saves beside ``checkpoint``
-    (``<prefix>_<steps>_steps.zip`` -> ``<prefix>_replay_buffer_<steps>_steps.pkl``)."""
+    def _on_training_end(self) -> None:
+        if self.due:
+            self._save()
+
+    def _save(self) -> None:
+        """Write the replay buffer (with ``save_replay_buffer``), the training state, then the zip."""
+        self.due = False
+        self.num_timesteps = self.model.num_timesteps
+        path = self._checkpoint_path(extension="zip")
+        if self.save_replay_buffer and getattr(self.model, "replay_buffer", None) is not None:
+            save_atomically(self.model.save_replay_buffer, checkpoint_companion(path, "replay_buffer"))
+        if self.saves_training_state:
+            self._save_training_state(checkpoint_companion(path, "training_state"))
+        save_model_atomically(self.model, path)
+        if self.verbose >= 2:
+            print(f"Saving model checkpoint to {path}")
+
+    def _save_training_state(self, path: Path) -> None:
+        """Pickle the model's training state to ``path``; warn once and stop when the env cannot be."""
+        try:
+            state = self.model.get_training_state()
+        except UnpicklableEnvError as error:
+            warnings.warn(
+                f"The checkpoints of this run hold no training state, so a resumed run restarts its "
+                f"episodes: {error}",
+                stacklevel=2,
+            )
+            self.saves_training_state = False
+            return
+        save_atomically(functools.partial(pickle.dump, state, protocol=pickle.HIGHEST_PROTOCOL), path)
+
+
+def checkpoint_companion(checkpoint: str | os.PathLike, kind: str) -> Path:
+    """The file of ``kind`` (``"replay_buffer"`` or ``"training_state"``) that
+    :class:`AtomicCheckpointCallback` saves beside ``checkpoint``
+    (``<prefix>_<steps>_steps.zip`` -> ``<prefix>_<kind>_<steps>_steps.pkl``)."""
     checkpoint = Path(checkpoint)
     prefix, _, steps = checkpoint.stem.removesuffix("_steps").rpartition("_")
-    return checkpoint.with_name(f"{prefix}_replay_buffer_{steps}_steps.pkl")
+    return checkpoint.with_name(f"{prefix}_{kind}_{steps}_steps.pkl")

@@ -6,8 +6,10 @@ A run folder (``<root>/<env>/<preset>/seed_<seed>/``) holds::
                         budget, seed, versions)
     tensorboard/        SB3's TensorBoard logs (when tensorboard is installed)
     team_returns.csv    one "r,l,t" row per training team episode, after a "#{json}" line (as SB3's Monitor)
-    checkpoints/        model_<agent-steps>_steps.zip every --save-freq agent-steps (optional), with
-                        --save-replay-buffer also model_replay_buffer_<agent-steps>_steps.pkl
+    checkpoints/        model_<agent-steps>_steps.zip every --save-freq agent-steps (optional) with
+                        model_training_state_<agent-steps>_steps.pkl (env copies, last observation,
+                        recurrent and random states), with --save-replay-buffer also
+                        model_replay_buffer_<agent-steps>_steps.pkl
     model.zip           the final model
     eval.json           the final evaluation; its presence marks the run as complete
     .lock, .lock.pid    the lock of the process working in the folder, and its pid
@@ -53,7 +55,7 @@ from sb3_hgrn.experiments.callbacks import (
     TEAM_RETURNS_FILE,
     AtomicCheckpointCallback,
     TeamMonitorCallback,
-    replay_buffer_path,
+    checkpoint_companion,
     rewind_team_returns,
 )
 from sb3_hgrn.experiments.config import ConfigError, RunConfig
@@ -291,10 +293,12 @@ def train_run(
 
     The env and the model are built first, so bad arguments fail before the folder is touched. Then
     :func:`prepare_run_folder` decides: a killed run of the same configuration resumes from its latest
-    checkpoint (``team_returns.csv`` rewound to the checkpoint) with the replay buffer saved beside it,
-    if any, else with an empty one; a complete run or one of another configuration is refused unless
-    ``overwrite``, which moves the old run aside and removes it once the new run has written its
-    ``eval.json``.
+    checkpoint (``team_returns.csv`` rewound to the checkpoint's episodes) with the replay buffer saved
+    beside it, if any, else with an empty one, and with its training state (env copies, last
+    observation, recurrent and random states), if any, else with the envs reset; with both the
+    resumed run is bit-identical to an uninterrupted one. A complete run or one of another
+    configuration is refused unless ``overwrite``, which moves the old run aside and removes it once
+    the new run has written its ``eval.json``.
 
     :param save_freq: save a checkpoint every this many agent-steps (``None``: no checkpoints).
     :param log_interval: team episodes between log dumps.
@@ -315,12 +319,14 @@ def train_run(
             model = PRESETS[config.preset][0].load(
                 checkpoint, env=env, device=device, tensorboard_log=tensorboard_log, verbose=verbose
             )
-            rewind_team_returns(folder / TEAM_RETURNS_FILE, model.num_timesteps)
-            replay = _load_replay_buffer(model, replay_buffer_path(checkpoint))
+            rewind_team_returns(folder / TEAM_RETURNS_FILE, model._episode_num)
+            replay = _load_replay_buffer(model, checkpoint_companion(checkpoint, "replay_buffer"))
+            exact = _load_training_state(model, checkpoint_companion(checkpoint, "training_state"))
             if verbose:
                 print(
                     f"Resuming from {checkpoint} ({model.num_timesteps} agent-steps done, "
-                    f"{'its' if replay else 'an empty'} replay buffer)"
+                    f"{'its' if replay else 'an empty'} replay buffer, "
+                    f"{'its env state' if exact else 'the envs reset'})"
                 )
         config.extra = _run_figures(config, env, model)
         write_text_atomically(folder / CONFIG_FILE, yaml.safe_dump(config.to_dict(), sort_keys=False))
@@ -374,6 +380,22 @@ def _load_replay_buffer(model: GraphOffPolicyAlgorithm, path: Path) -> bool:
         model.load_replay_buffer(path)
     except (pickle.UnpicklingError, EOFError, AttributeError, TypeError, ValueError) as error:
         warnings.warn(f"Skipping the replay buffer {path}, which cannot be loaded: {error}", stacklevel=2)
+        return False
+    return True
+
+
+def _load_training_state(model: GraphOffPolicyAlgorithm, path: Path) -> bool:
+    """Restore the training state at ``path`` (env copies, last observation, recurrent state, random
+    states) into ``model``; whether it was restored (one that is damaged or does not fit is skipped
+    with a warning, and the envs reset when training starts)."""
+    if not path.is_file():
+        return False
+    try:
+        with open(path, "rb") as file:
+            state = pickle.load(file)
+        model.set_training_state(state)
+    except (pickle.UnpicklingError, EOFError, AttributeError, KeyError, TypeError, ValueError) as error:
+        warnings.warn(f"Skipping the training state {path}, which cannot be loaded: {error}", stacklevel=2)
         return False
     return True
 
