@@ -22,7 +22,12 @@ SPEC = "tests.user_env_pkg:make_env"
 FOLDER_NAME = "tests.user_env_pkg-make_env"
 TOY = ["--budget", "ci", "--verbose", "0", "--threads", "1"]
 CONFIG = {
-    "default": {"learning_starts": 30, "batch_size": 4, "buffer_size": 500, "policy_kwargs": {"hidden_dim": 16}},
+    "default": {
+        "learning_starts": 30,
+        "batch_size": 4,
+        "buffer_size": 500,
+        "policy_kwargs": {"hidden_dim": 16},
+    },
     "budgets": {
         "ci": {
             "n_envs": 1,
@@ -46,8 +51,8 @@ def config_file(tmp_path_factory) -> Path:
 def user_run(tmp_path_factory, config_file) -> Path:
     """A run of the user env trained through ``main``."""
     root = tmp_path_factory.mktemp("runs")
-    args = ["train", "--env", SPEC, "--config", str(config_file), "--preset", "soft_hgrn", "--folder", str(root)]
-    assert main([*args, *TOY]) == 0
+    args = ["train", "--env", SPEC, "--config", str(config_file), "--preset", "soft_hgrn"]
+    assert main([*args, "--folder", str(root), *TOY]) == 0
     return root / FOLDER_NAME / "soft_hgrn" / "seed_0"
 
 
