@@ -157,3 +157,14 @@ def test_a_sweep_of_a_user_env_passes_its_config_to_every_run(config_file, tmp_p
     assert "config" not in SweepSettings("surviving_v0", "ci").record()  # old sweep.yml files still match
     with pytest.raises(ConfigError, match="--config FILE"):
         check_points(SweepSettings(SPEC, "ci"), points, ["soft_hgrn"])
+
+
+def test_a_study_of_a_user_env_is_named_as_its_run_folders(config_file):
+    tune = pytest.importorskip("sb3_hgrn.experiments.tune", exc_type=ImportError)
+    setup = tune.TuneSetup(SPEC, "soft_hgrn", "ci", 0, {}, config=[str(config_file)])
+    assert setup.default_study_name() == f"{FOLDER_NAME}_soft_hgrn_ci"
+    assert setup.run_config({"learning_rate": 1e-3}).env_kwargs == {"n_agents": 3, "max_cycles": 5}
+    assert setup.describe()["config"] == [str(config_file)]
+    assert "config" not in tune.TuneSetup("surviving_v0", "soft_hgrn", "ci", 0, {}).describe()
+    with pytest.raises(ConfigError, match="--config FILE"):
+        tune.TuneSetup(SPEC, "soft_hgrn", "ci", 0, {})

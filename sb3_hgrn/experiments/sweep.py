@@ -334,7 +334,8 @@ def summary_markdown(rows: Sequence[dict[str, Any]], settings: SweepSettings, fi
     lines = [
         f"# Sweep on `{settings.env}`, budget `{settings.budget}`",
         "",
-        f"{section.get('description', '')}; {steps:,} agent-steps per run"
+        (f"{section['description']}; " if section.get("description") else "")
+        + f"{steps:,} agent-steps per run"
         + (f"; every point with {', '.join(shared)}" if shared else "")
         + ". A run's score is its mean evaluation team return. **IQM [95 % CI]**: interquartile mean "
         "of the seeds' scores with its 95 % stratified-bootstrap interval (rliable, "
