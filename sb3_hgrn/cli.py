@@ -4,6 +4,7 @@ draw its figures and sweep grids of arguments.
 Examples::
 
     sb3-hgrn train --env surviving_v0 --preset soft_hgrn --budget cpu --seed 0
+    sb3-hgrn train --env my_package.my_module:make_env --config my_config.yml --preset soft_hgrn
     sb3-hgrn evaluate runs/surviving_v0/soft_hgrn/seed_0 --episodes 10 --epsilon 0.3
     sb3-hgrn render runs/surviving_v0/soft_hgrn/seed_0 --out episode.gif
     sb3-hgrn reproduce table1 --budget cpu --seeds 3 --jobs 2
@@ -23,7 +24,7 @@ from pathlib import Path
 
 from sb3_hgrn.common.vec_env import REGISTERED_ENVS
 from sb3_hgrn.experiments.backends import BACKENDS, Backend, make_backend
-from sb3_hgrn.experiments.config import BUDGETS, ConfigError, parse_assignments
+from sb3_hgrn.experiments.config import BUDGETS, ENV_SPEC_HELP, ConfigError, parse_assignments
 from sb3_hgrn.presets import TABLE1
 
 
@@ -48,12 +49,27 @@ def _add_env_params(parser: argparse.ArgumentParser) -> None:
     )
 
 
+ENV_HELP = f"one of {', '.join(REGISTERED_ENVS)}, or {ENV_SPEC_HELP} (needs --config)"
+
+
+def _add_config(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--config",
+        nargs="+",
+        action="extend",
+        metavar="FILE",
+        help="YAML config files of one's own over the packaged one, in order, e.g. the best.yml of tune; "
+        "a MODULE:ATTR env needs one with its budget (docs/cli.md)",
+    )
+
+
 def _add_trust_config(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--trust-config",
         action="store_true",
-        help="load models that the run's config.yml names for its env (Pursuit controllers) from "
-        "anywhere, not only from inside the run folder (loading a model can run code)",
+        help="import the env MODULE:ATTR that the run's config.yml names without --env naming it too, and "
+        "load models it names for its env (Pursuit controllers) from anywhere, not only from inside "
+        "the run folder (importing a module or loading a model can run code)",
     )
 
 
@@ -89,7 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     train = commands.add_parser("train", help="train one run into its own folder, then evaluate it")
-    train.add_argument("--env", required=True, help=f"one of {', '.join(REGISTERED_ENVS)}")
+    train.add_argument("--env", required=True, help=ENV_HELP)
     train.add_argument("--preset", required=True, help="a name of sb3_hgrn.presets.PRESETS (docs/presets.md)")
     train.add_argument("--budget", default="cpu", help=f"config budget: {', '.join(BUDGETS)} (default cpu)")
     train.add_argument("--seed", type=int, default=0)
@@ -108,11 +124,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="algorithm argument over the config (e.g. batch_size=64 policy_kwargs.hidden_dim=32)",
     )
     _add_env_params(train)
-    train.add_argument(
-        "--config",
-        metavar="FILE",
-        help="YAML config of one's own over the packaged one, e.g. the best.yml of tune (docs/cli.md)",
-    )
+    _add_config(train)
     train.add_argument(
         "--save-freq", type=_positive_int, help="save a checkpoint every this many agent-steps"
     )
@@ -147,7 +159,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     evaluate.add_argument("--n-envs", type=_positive_int, help="env copies (default: the run's eval_n_envs)")
     evaluate.add_argument("--seed", type=int, help="env seed (default: the run's seed + 1000)")
-    evaluate.add_argument("--env", help="env of a bare .zip outside a run folder")
+    evaluate.add_argument(
+        "--env", help="env of a bare .zip outside a run folder, or the MODULE:ATTR env its config.yml names"
+    )
     evaluate.add_argument("--threads", type=_positive_int, help="torch CPU threads")
     _add_env_params(evaluate)
     _add_trust_config(evaluate)
@@ -161,7 +175,9 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--fps", type=float, default=10.0, help="frames per second (default 10)")
     render.add_argument("--deterministic", action="store_true", help="greedy actions")
     render.add_argument("--seed", type=int, help="env seed (default: the run's seed + 1000)")
-    render.add_argument("--env", help="env of a bare .zip outside a run folder")
+    render.add_argument(
+        "--env", help="env of a bare .zip outside a run folder, or the MODULE:ATTR env its config.yml names"
+    )
     _add_env_params(render)
     _add_trust_config(render)
 
@@ -230,7 +246,7 @@ def build_parser() -> argparse.ArgumentParser:
     sweep = commands.add_parser(
         "sweep", help="train a grid of presets, seeds and argument values on one env, and summarise it"
     )
-    sweep.add_argument("--env", required=True, help=f"one of {', '.join(REGISTERED_ENVS)}")
+    sweep.add_argument("--env", required=True, help=ENV_HELP)
     sweep.add_argument("--budget", default="cpu", help=f"config budget: {', '.join(BUDGETS)} (default cpu)")
     sweep.add_argument("--presets", nargs="+", help="presets (default: the grid file's, else soft_hgrn)")
     sweep.add_argument("--seeds", type=_positive_int, help="seeds 0..N-1 (default: the grid file's, else 3)")
@@ -265,6 +281,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="algorithm argument of every point (as train's --param)",
     )
     _add_env_params(sweep)
+    _add_config(sweep)
     sweep.add_argument(
         "--folder", default="sweeps", help="runs go to <folder>/<point>/<env>/<preset>/seed_<seed>"
     )
@@ -281,7 +298,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _add_tune_parser(commands: argparse._SubParsersAction) -> None:
     """The ``tune`` subcommand: an Optuna search of one preset's hyperparameters on one env."""
     tune = commands.add_parser("tune", help="search the hyperparameters of one preset on one env (Optuna)")
-    tune.add_argument("--env", required=True, help=f"one of {', '.join(REGISTERED_ENVS)}")
+    tune.add_argument("--env", required=True, help=ENV_HELP)
     tune.add_argument("--preset", required=True, help="a name of sb3_hgrn.presets.PRESETS (docs/presets.md)")
     tune.add_argument("--budget", default="cpu", help=f"config budget: {', '.join(BUDGETS)} (default cpu)")
     tune.add_argument(
@@ -302,6 +319,7 @@ def _add_tune_parser(commands: argparse._SubParsersAction) -> None:
         help="fixed algorithm argument",
     )
     _add_env_params(tune)
+    _add_config(tune)
     tune.add_argument("--search-space", metavar="FILE", help="YAML search space (default: the packaged one)")
     tune.add_argument(
         "--n-trials", type=_positive_int, default=10, help="trials this command runs (default 10)"
@@ -475,6 +493,7 @@ def _sweep(args: argparse.Namespace) -> int:
         env_params=parse_assignments(
             [*assignments(list(spec.get("env_params", {}).items())), *args.env_param], "--env-param"
         ),
+        config=args.config or [],
     )
     failed = run_grid(
         settings,
@@ -508,6 +527,7 @@ def _tune(args: argparse.Namespace) -> int:
         timesteps=args.timesteps,
         eval_freq=args.eval_freq,
         eval_episodes=args.eval_episodes,
+        config=args.config or [],
     )
     warmup = args.n_warmup_steps
     if warmup is None:

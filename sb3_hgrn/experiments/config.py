@@ -22,20 +22,29 @@ Algorithm keyword arguments are merged in that order (``policy_kwargs`` key by k
 top-level ``default``, top-level preset section, the budget's ``default``, the budget's preset
 section, then ``--param`` overrides from the command line.
 
-``train --config FILE`` reads a file of the same format in which every section is optional (e.g. the
-``best.yml`` that ``tune`` writes): its sections are merged over the packaged file's, in the same
-order (so even its top-level preset section wins over the packaged budget sections), and ``--param``
-and ``--env-param`` still come last. Its budget fields replace the packaged budget's.
+``train --config FILE [FILE ...]`` reads files of the same format in which every section is optional
+(e.g. the ``best.yml`` that ``tune`` writes): their sections are merged over the packaged file's, one
+file after the other, in the same order (so even a file's top-level preset section wins over the
+packaged budget sections), and ``--param`` and ``--env-param`` still come last. Their budget fields
+replace the packaged budget's.
+
+An env of one's own is named ``MODULE:ATTR`` (:data:`ENV_SPEC_HELP`). It has no packaged file, so its
+config files must give the budget's ``n_envs``, ``total_timesteps`` and ``eval_episodes``
+(:data:`USER_ENV_CONFIG_EXAMPLE`).
 """
 
 from __future__ import annotations
 
 import ast
+import importlib
 import inspect
 import os
+import re
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from importlib import resources
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import yaml
@@ -56,14 +65,86 @@ RESERVED_PARAMS = {"policy", "env", "seed", "verbose", "tensorboard_log", "devic
 """Algorithm arguments the runner sets itself (``--seed``, ``--verbose``, ``--device``)."""
 
 
+REQUIRED_BUDGET_FIELDS = ("n_envs", "total_timesteps", "eval_episodes")
+"""Budget fields without a default: a packaged file has them, a user env's config file must give them."""
+ENV_SPEC_HELP = "MODULE:ATTR, an importable module and its env factory (e.g. my_package.my_module:make_env)"
+_ENV_SPEC = re.compile(r"(?P<module>[A-Za-z_]\w*(?:\.[A-Za-z_]\w*)*):(?P<attr>[A-Za-z_]\w*)", re.ASCII)
+USER_ENV_CONFIG_EXAMPLE = """\
+budgets:
+  ci:
+    n_envs: 1               # env copies stepped together while training
+    total_timesteps: 2000   # agent-steps of training
+    eval_episodes: 2        # team episodes of the final evaluation
+    env_kwargs: {}          # arguments of the env factory (optional)"""
+"""The smallest config file of a user env (one budget)."""
+
+
 class ConfigError(ValueError):
     """A config file or a command-line override that cannot be used (the message says why)."""
 
 
+def is_env_spec(env: str) -> bool:
+    """Whether ``env`` names an env of one's own (``MODULE:ATTR``) rather than a registered one."""
+    return ":" in env
+
+
 def check_env_name(env: str) -> None:
-    """Raise :class:`ConfigError` unless ``env`` is a registered env with a config file."""
-    if env not in REGISTERED_ENVS:
-        raise ConfigError(f"Unknown env {env!r}; available: {', '.join(REGISTERED_ENVS)}.")
+    """Raise :class:`ConfigError` unless ``env`` is a registered env or a well-formed ``MODULE:ATTR``
+    (which is not imported here)."""
+    if is_env_spec(env):
+        if _ENV_SPEC.fullmatch(env) is None:
+            raise ConfigError(
+                f"Malformed env {env!r}: expected {ENV_SPEC_HELP}, with a dotted module path, one colon "
+                "and a Python name after it."
+            )
+    elif env not in REGISTERED_ENVS:
+        raise ConfigError(
+            f"Unknown env {env!r}; available: {', '.join(REGISTERED_ENVS)}, or {ENV_SPEC_HELP}."
+        )
+
+
+def env_folder_name(env: str) -> str:
+    """The folder name of ``env`` in run folders and study names: a registered name itself, a
+    ``MODULE:ATTR`` as ``MODULE-ATTR`` (``my_package.my_module-make_env``; no registered name and no
+    Python name holds a ``-``, so distinct envs get distinct folders)."""
+    check_env_name(env)
+    return env.replace(":", "-")
+
+
+def load_env_factory(env: str) -> ModuleType | Callable[..., Any]:
+    """Import the env ``MODULE:ATTR`` and return its attribute: a callable building a PettingZoo
+    ``ParallelEnv`` or AEC env (e.g. a ``parallel_env`` function) or a module with ``parallel_env()``.
+
+    Importing a module runs its code: call this only for an env the user named.
+    """
+    check_env_name(env)
+    match = _ENV_SPEC.fullmatch(env)
+    if match is None:
+        raise ConfigError(f"{env!r} is a registered env name, not {ENV_SPEC_HELP}.")
+    module_name, attr = match["module"], match["attr"]
+    try:
+        module = importlib.import_module(module_name)
+    except Exception as error:  # the user's module may raise anything while it is imported
+        raise ConfigError(
+            f"Cannot import module {module_name!r} of the env {env!r}: {type(error).__name__}: {error}. "
+            "It must be importable (installed, or on PYTHONPATH)."
+        ) from error
+    if not hasattr(module, attr):
+        raise ConfigError(f"Module {module_name!r} has no attribute {attr!r} (the env {env!r}).")
+    factory = getattr(module, attr)
+    if isinstance(factory, ModuleType):
+        if not callable(getattr(factory, "parallel_env", None)):
+            raise ConfigError(
+                f"{module_name}.{attr} (the env {env!r}) is a module without parallel_env(); name a "
+                "callable that returns a PettingZoo ParallelEnv or AEC env."
+            )
+        return factory
+    if not callable(factory):
+        raise ConfigError(
+            f"{module_name}.{attr} (the env {env!r}) is a {type(factory).__name__}, not callable; name a "
+            "callable that returns a PettingZoo ParallelEnv or AEC env."
+        )
+    return factory
 
 
 def check_preset_name(preset: str) -> None:
@@ -81,6 +162,8 @@ def check_budget_name(budget: str) -> None:
 def load_hyperparams(env: str) -> dict[str, Any]:
     """Read and check ``sb3_hgrn/hyperparams/<env>.yml``."""
     check_env_name(env)
+    if is_env_spec(env):
+        raise ConfigError(f"The env {env!r} is not a registered one and has no packaged config file.")
     text = (resources.files("sb3_hgrn") / "hyperparams" / f"{env}.yml").read_text(encoding="utf-8")
     config = yaml.safe_load(text) or {}
     where = f"hyperparams/{env}.yml"
@@ -118,7 +201,7 @@ def _check_config(config: Any, where: str, complete: bool) -> None:
         check_budget_name(budget)
         section = {} if section is None else section
         _check_sections(section, BUDGET_FIELDS, f"{where} budget {budget}")
-        for key in ("n_envs", "total_timesteps", "eval_episodes"):
+        for key in REQUIRED_BUDGET_FIELDS:
             if (complete or key in section) and (not isinstance(section.get(key), int) or section[key] < 1):
                 raise ConfigError(f"{where} budget {budget}: {key} must be a positive integer.")
 
@@ -235,22 +318,21 @@ def resolve_config(
     timesteps: int | None = None,
     params: dict[str, Any] | None = None,
     env_params: dict[str, Any] | None = None,
-    config_file: str | os.PathLike | None = None,
+    config_file: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
 ) -> RunConfig:
     """The configuration of one run of ``preset`` on ``env`` at ``budget``.
 
     :param timesteps: agent-steps of training instead of the budget's ``total_timesteps``.
     :param params: algorithm keyword arguments over the config files' (``--param``).
     :param env_params: env keyword arguments over the config files' (``--env-param``).
-    :param config_file: a config file of one's own merged over the packaged one (``--config``, see
-        :func:`load_config_file`).
+    :param config_file: config files of one's own merged over the packaged one, in order (``--config``,
+        see :func:`load_config_file`); a user env (``MODULE:ATTR``) has no packaged file, so they must
+        give the budget's :data:`REQUIRED_BUDGET_FIELDS`.
     """
     check_env_name(env)
     check_preset_name(preset)
     check_budget_name(budget)
-    configs = [load_hyperparams(env)]
-    if config_file is not None:
-        configs.append(load_config_file(config_file))
+    configs = _load_configs(env, budget, config_file)
     hyperparams: dict[str, Any] = {}
     for config in configs:
         section = _budget_section(config, budget)
@@ -271,9 +353,70 @@ def random_policy_config(env: str, budget: str = "cpu", seed: int = 0) -> RunCon
     return _budget_config([load_hyperparams(env)], env, RANDOM_POLICY, budget, seed, 0, {}, None)
 
 
+def budget_settings(
+    env: str, budget: str, config_file: str | os.PathLike | Sequence[str | os.PathLike] | None = None
+) -> dict[str, Any]:
+    """The fields of ``budget`` (``description``, ``n_envs``, ``total_timesteps``, ...) that ``env``'s
+    packaged config file and ``config_file`` (see :func:`resolve_config`) give, later files winning."""
+    check_env_name(env)
+    check_budget_name(budget)
+    return _merged_budget(_load_configs(env, budget, config_file), budget)[0]
+
+
+def _load_configs(
+    env: str, budget: str, config_file: str | os.PathLike | Sequence[str | os.PathLike] | None
+) -> list[dict[str, Any]]:
+    """The config files of a run of ``env`` at ``budget``: the packaged one of a registered env, then
+    ``config_file``'s; those of a user env must give the budget's :data:`REQUIRED_BUDGET_FIELDS`."""
+    configs = [load_config_file(path) for path in _config_paths(config_file)]
+    if is_env_spec(env):
+        _check_user_env_budget(env, budget, configs)
+        return configs
+    return [load_hyperparams(env), *configs]
+
+
+def _config_paths(
+    config_file: str | os.PathLike | Sequence[str | os.PathLike] | None,
+) -> list[str | os.PathLike]:
+    """``config_file`` as a list of paths (one path, several, or none)."""
+    if config_file is None:
+        return []
+    if isinstance(config_file, str | os.PathLike):
+        return [config_file]
+    return list(config_file)
+
+
+def _check_user_env_budget(env: str, budget: str, configs: list[dict[str, Any]]) -> None:
+    """Raise :class:`ConfigError` unless the config files of the user env ``env`` give ``budget``'s
+    :data:`REQUIRED_BUDGET_FIELDS`."""
+    given = {key for config in configs for key in _budget_section(config, budget)}
+    missing = [key for key in REQUIRED_BUDGET_FIELDS if key not in given]
+    if missing:
+        where = "its --config file" if configs else "--config FILE (it has none)"
+        raise ConfigError(
+            f"The env {env!r} has no packaged config file, so {where} must give the budget "
+            f"{budget!r} with {', '.join(REQUIRED_BUDGET_FIELDS)}; missing: {', '.join(missing)}. "
+            f"A minimal config file (docs/cli.md, 'Your own env'):\n"
+            + USER_ENV_CONFIG_EXAMPLE.replace("ci:", f"{budget}:", 1)
+        )
+
+
 def _budget_section(config: dict[str, Any], budget: str) -> dict[str, Any]:
     """The ``budget`` section of a config file (empty if it has none)."""
     return (config.get("budgets") or {}).get(budget) or {}
+
+
+def _merged_budget(configs: list[dict[str, Any]], budget: str) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The budget fields of ``budget`` and the env arguments (top-level, then the budget's) of
+    ``configs``, each merged over the ones before."""
+    section: dict[str, Any] = {}
+    env_kwargs: dict[str, Any] = {}
+    for config in configs:
+        budget_section = _budget_section(config, budget)
+        section.update({key: value for key, value in budget_section.items() if key in BUDGET_FIELDS})
+        env_kwargs = merge(env_kwargs, config.get("env_kwargs") or {})
+        env_kwargs = merge(env_kwargs, budget_section.get("env_kwargs") or {})
+    return section, env_kwargs
 
 
 def _budget_config(
@@ -291,13 +434,7 @@ def _budget_config(
 
     :param total_timesteps: agent-steps of training (``None``: the budget's ``total_timesteps``).
     """
-    section: dict[str, Any] = {}
-    env_kwargs: dict[str, Any] = {}
-    for config in configs:
-        budget_section = _budget_section(config, budget)
-        section.update({key: value for key, value in budget_section.items() if key in BUDGET_FIELDS})
-        env_kwargs = merge(env_kwargs, config.get("env_kwargs") or {})
-        env_kwargs = merge(env_kwargs, budget_section.get("env_kwargs") or {})
+    section, env_kwargs = _merged_budget(configs, budget)
     env_kwargs = merge(env_kwargs, env_params or {})
     if total_timesteps is None:
         total_timesteps = section["total_timesteps"]

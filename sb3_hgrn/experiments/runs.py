@@ -1,6 +1,7 @@
 """One training run into one folder; evaluating and rendering saved runs.
 
-A run folder (``<root>/<env>/<preset>/seed_<seed>/``) holds::
+A run folder (``<root>/<env>/<preset>/seed_<seed>/``, a user env ``MODULE:ATTR`` as ``MODULE-ATTR``)
+holds::
 
     config.yml          the resolved configuration (env, env_kwargs, n_envs, preset, algorithm kwargs,
                         budget, seed, versions)
@@ -58,7 +59,14 @@ from sb3_hgrn.experiments.callbacks import (
     checkpoint_companion,
     rewind_team_returns,
 )
-from sb3_hgrn.experiments.config import ConfigError, RunConfig
+from sb3_hgrn.experiments.config import (
+    ConfigError,
+    RunConfig,
+    check_env_name,
+    env_folder_name,
+    is_env_spec,
+    load_env_factory,
+)
 from sb3_hgrn.experiments.lock import RunLock
 from sb3_hgrn.presets import PRESETS, make_model, merge, preset_kwargs
 
@@ -72,8 +80,8 @@ EVAL_SEED_OFFSET = 1000
 
 
 def run_folder(root: str | os.PathLike, env: str, preset: str, seed: int) -> Path:
-    """``<root>/<env>/<preset>/seed_<seed>``."""
-    return Path(root) / env / preset / f"seed_{seed}"
+    """``<root>/<env>/<preset>/seed_<seed>``, ``<env>`` as :func:`env_folder_name` writes it."""
+    return Path(root) / env_folder_name(env) / preset / f"seed_{seed}"
 
 
 def figure_root(folder: str | os.PathLike, name: str) -> Path:
@@ -246,13 +254,15 @@ def _tensorboard_dir(folder: Path, verbose: int) -> str | None:
 
 
 def make_env(config: RunConfig, n_envs: int, seed: int | None, **env_kwargs: Any) -> GraphVecEnv:
-    """The run's env (``config.env_kwargs`` updated with ``env_kwargs``) as a graph VecEnv.
+    """The run's env (``config.env_kwargs`` updated with ``env_kwargs``) as a graph VecEnv; a user env
+    ``MODULE:ATTR`` is imported (:func:`~sb3_hgrn.experiments.config.load_env_factory`).
 
     Bad env arguments raise :class:`ConfigError` with the env's own message.
     """
     kwargs = {**config.env_kwargs, **env_kwargs}
+    env = load_env_factory(config.env) if is_env_spec(config.env) else config.env
     try:
-        return make_graph_vec_env(config.env, n_envs=n_envs, seed=seed, env_kwargs=kwargs)
+        return make_graph_vec_env(env, n_envs=n_envs, seed=seed, env_kwargs=kwargs)
     except (TypeError, ValueError) as error:
         raise ConfigError(f"Cannot build {config.env} with env arguments {kwargs}: {error}") from error
 
@@ -651,8 +661,6 @@ def locate_run(path: str | os.PathLike, env: str | None = None) -> tuple[Path, R
             return model_path, config, folder
     if env is None:
         raise ConfigError(f"No {CONFIG_FILE} beside {path}: pass --env to say which env it runs on.")
-    from sb3_hgrn.experiments.config import check_env_name
-
     check_env_name(env)
     return model_path, RunConfig(env, "", "", 0, {}, 1, 1, 0, 10, [], False, {}), None
 
@@ -666,10 +674,12 @@ def check_stored_model_paths(
     Loading a model zip unpickles it and so can run code: a run's ``config.yml`` may only point to
     models inside its own folder, unless ``trust_config``. Env arguments in ``given`` (passed by the
     user, over the stored ones) are not checked. Which env arguments name models the env module says
-    with ``model_paths(env_kwargs) -> {argument: path}``.
+    with ``model_paths(env_kwargs) -> {argument: path}`` (registered envs only).
     """
+    if trust_config or is_env_spec(config.env):
+        return
     model_paths = getattr(importlib.import_module(f"sb3_hgrn.envs.{config.env}"), "model_paths", None)
-    if trust_config or model_paths is None:
+    if model_paths is None:
         return
     inside = folder.resolve()
     for name, value in model_paths(config.env_kwargs).items():
@@ -680,6 +690,23 @@ def check_stored_model_paths(
                 f"If you trust this config, pass --trust-config (trust_config=True), or give the model "
                 f"yourself with --env-param {name}=PATH."
             )
+
+
+def check_stored_env(config: RunConfig, folder: Path, given: str | None, trust_config: bool = False) -> None:
+    """Raise :class:`ConfigError` when the ``config.yml`` of the run in ``folder`` names a user env
+    (``MODULE:ATTR``) that the user did not name too.
+
+    Building a user env imports its module, which runs its code: a run's ``config.yml`` may name one
+    only if the user gives the same with ``given`` (``--env``), or with ``trust_config``.
+    """
+    if trust_config or not is_env_spec(config.env) or given == config.env:
+        return
+    raise ConfigError(
+        f"{folder / CONFIG_FILE} names the env {config.env!r}, code of its own that would be imported "
+        "and run. A run's config may name such an env only if you name it too: pass "
+        f"--env {config.env} (env={config.env!r}) if that is your env, or --trust-config "
+        "(trust_config=True) if you trust this config."
+    )
 
 
 def load_run(
@@ -694,10 +721,12 @@ def load_run(
     """Load a saved run's model onto a fresh copy of its env (``env_kwargs`` over the run's).
 
     Models the run's ``config.yml`` names for its env are loaded only from inside the run folder
-    unless ``trust_config`` (see :func:`check_stored_model_paths`).
+    unless ``trust_config`` (see :func:`check_stored_model_paths`), and a user env it names is
+    imported only if ``env`` names it too or with ``trust_config`` (see :func:`check_stored_env`).
     """
     model_path, config, folder = locate_run(path, env)
     if folder is not None:
+        check_stored_env(config, folder, env, trust_config)
         check_stored_model_paths(config, folder, env_kwargs, trust_config)
     algorithm = PRESETS[config.preset][0] if config.preset in PRESETS else algorithm_of_zip(model_path)
     vec_env = make_env(

@@ -8,7 +8,8 @@ A grid point is one value for every grid key, e.g. ``learning_rate=0.001`` and `
 ``sb3-hgrn train ... --folder <folder>/<point> --param learning_rate=0.001 --env-param n_agents=10``.
 Finished runs are skipped, so a stopped sweep continues where it stood and a grid can grow.
 ``<folder>/sweep.yml`` records the settings every point shares (env, budget, agent-steps, fixed
-``--param`` / ``--env-param``): a folder is refused to a sweep with other shared settings. After every
+``--param`` / ``--env-param``, ``--config`` files): a folder is refused to a sweep with other shared
+settings. After every
 finished run ``<folder>/sweep.csv`` and ``<folder>/sweep.md`` are rewritten (mean +- std over seeds);
 when the sweep ends they get the IQM with its 95 % stratified-bootstrap interval too
 (:mod:`sb3_hgrn.experiments.stats`).
@@ -42,8 +43,8 @@ from sb3_hgrn.common.files import write_csv_atomically, write_text_atomically
 from sb3_hgrn.experiments.backends import Backend, LocalBackend
 from sb3_hgrn.experiments.config import (
     ConfigError,
+    budget_settings,
     check_budget_name,
-    load_hyperparams,
     parse_assignments,
     parse_value,
     resolve_config,
@@ -207,25 +208,35 @@ def grid_points(grid: Mapping[str, Sequence[Any]], env_grid: Mapping[str, Sequen
 @dataclass
 class SweepSettings:
     """What every point of a sweep shares (written to ``<folder>/sweep.yml``); ``params`` and
-    ``env_params`` as :func:`~sb3_hgrn.experiments.config.parse_assignments` gives them (nested)."""
+    ``env_params`` as :func:`~sb3_hgrn.experiments.config.parse_assignments` gives them (nested),
+    ``config`` the ``--config`` files (needed by a user env ``MODULE:ATTR``)."""
 
     env: str
     budget: str
     timesteps: int | None = None
     params: dict[str, Any] = field(default_factory=dict)
     env_params: dict[str, Any] = field(default_factory=dict)
+    config: list[str] = field(default_factory=list)
 
     def train_args(self) -> list[str]:
-        """``--timesteps``, ``--param`` and ``--env-param`` of the shared settings."""
+        """``--timesteps``, ``--param``, ``--env-param`` and ``--config`` of the shared settings."""
         steps = [] if self.timesteps is None else ["--timesteps", str(self.timesteps)]
         items = assignments(list(self.params.items())), assignments(list(self.env_params.items()))
-        return [*steps, *_options(*items)]
+        config = ["--config", *self.config] if self.config else []
+        return [*steps, *_options(*items), *config]
+
+    def record(self) -> dict[str, Any]:
+        """Plain data for ``sweep.yml`` (without ``config`` when there is none, as before it existed)."""
+        data = asdict(self)
+        if not self.config:
+            del data["config"]
+        return data
 
 
 def check_settings(folder: Path, settings: SweepSettings) -> None:
     """Write ``settings`` to ``folder/sweep.yml``, or check them against those already there."""
     path = folder / SETTINGS_FILE
-    recorded = asdict(settings)
+    recorded = settings.record()
     if path.exists():
         before = yaml.safe_load(path.read_text(encoding="utf-8"))
         if before != recorded:
@@ -269,7 +280,14 @@ def check_points(settings: SweepSettings, points: Sequence[Point], presets: Sequ
     for point in points:
         params = parse_assignments([*shared, *assignments(point.params)])
         for preset in presets:
-            resolve_config(settings.env, preset, settings.budget, timesteps=settings.timesteps, params=params)
+            resolve_config(
+                settings.env,
+                preset,
+                settings.budget,
+                timesteps=settings.timesteps,
+                params=params,
+                config_file=settings.config,
+            )
 
 
 def summary_rows(
@@ -310,13 +328,14 @@ def summary_rows(
 
 def summary_markdown(rows: Sequence[dict[str, Any]], settings: SweepSettings, final: bool) -> str:
     """The summary table with the shared settings above it."""
-    section = load_hyperparams(settings.env)["budgets"][settings.budget]
+    section = budget_settings(settings.env, settings.budget, settings.config)
     steps = settings.timesteps or section["total_timesteps"]
     shared = [f"`{key}={value}`" for key, value in {**settings.params, **settings.env_params}.items()]
     lines = [
         f"# Sweep on `{settings.env}`, budget `{settings.budget}`",
         "",
-        f"{section.get('description', '')}; {steps:,} agent-steps per run"
+        (f"{section['description']}; " if section.get("description") else "")
+        + f"{steps:,} agent-steps per run"
         + (f"; every point with {', '.join(shared)}" if shared else "")
         + ". A run's score is its mean evaluation team return. **IQM [95 % CI]**: interquartile mean "
         "of the seeds' scores with its 95 % stratified-bootstrap interval (rliable, "

@@ -51,6 +51,7 @@ from sb3_hgrn.experiments.config import (
     RunConfig,
     check_params,
     check_preset_name,
+    env_folder_name,
     nest,
     resolve_config,
 )
@@ -270,6 +271,7 @@ class TuneSetup:
     :param timesteps: agent-steps of training per trial (``None``: the budget's).
     :param eval_freq: agent-steps between evaluations (``None``: a fifth of the training).
     :param eval_episodes: team episodes per evaluation.
+    :param config: config files of one's own (``--config``; a user env ``MODULE:ATTR`` needs one).
     """
 
     env: str
@@ -282,6 +284,7 @@ class TuneSetup:
     timesteps: int | None = None
     eval_freq: int | None = None
     eval_episodes: int = 4
+    config: list[str] = field(default_factory=list)
 
     def __post_init__(self):
         for name in self.search_space:
@@ -303,19 +306,23 @@ class TuneSetup:
             self.timesteps,
             params=merge(self.params, sampled),
             env_params=self.env_params,
+            config_file=self.config,
         )
 
     def default_study_name(self) -> str:
-        """``<env>_<preset>_<budget>``."""
-        return f"{self.env}_{self.preset}_{self.budget}"
+        """``<env>_<preset>_<budget>``, ``<env>`` as in run folders (:func:`env_folder_name`)."""
+        return f"{env_folder_name(self.env)}_{self.preset}_{self.budget}"
 
     def evaluation_interval(self, total_timesteps: int) -> int:
         """Agent-steps between evaluations of a trial training ``total_timesteps``."""
         return self.eval_freq if self.eval_freq is not None else max(1, total_timesteps // 5)
 
     def describe(self) -> dict[str, Any]:
-        """Plain data of the setup (stored in the study; the search space as Optuna's JSON)."""
+        """Plain data of the setup (stored in the study; the search space as Optuna's JSON; no
+        ``config`` when there is none, as before it existed)."""
         data = asdict(self)
+        if not self.config:
+            del data["config"]
         data["search_space"] = {name: distribution_to_json(d) for name, d in self.search_space.items()}
         return data
 
@@ -604,7 +611,7 @@ def write_best_config(study: optuna.Study, setup: TuneSetup, path: Path) -> None
         f"# ({setup.preset} on {setup.env}, budget {setup.budget}, seed {setup.seed}; "
         f"{time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())}). Train with it:\n"
         f"#   sb3-hgrn train --env {setup.env} --preset {setup.preset} --budget {setup.budget}{steps} "
-        f"--config {path}\n"
+        f"--config {' '.join([*setup.config, str(path)])}\n"
     )
     write_text_atomically(path, header + yaml.safe_dump(setup.best_config(trial), sort_keys=False))
 
