@@ -56,6 +56,9 @@ def test_exact_soft_value_and_greedy_value():
     assert model._next_value(next_q, logits, alpha).item() == pytest.approx(3.0)
 
 
+ALIVE = th.ones(1, 1)  # the one agent of the hand-computed losses lives
+
+
 def test_boltzmann_actor_loss_matches_hand_computation():
     model = quick_model(bit_vec_env(n_envs=1))
     assert model.actor_loss == "boltzmann"
@@ -63,9 +66,10 @@ def test_boltzmann_actor_loss_matches_hand_computation():
     q = th.tensor([[[1.0, 2.0]]])
     target = th.softmax(q / 0.2, dim=-1)[0, 0].tolist()  # the Boltzmann policy of Q at alpha 0.2
     expected = sum(p * (math.log(p) - math.log(0.5)) for p in target)
-    assert model._policy_loss(logits, q, th.tensor(0.2)).item() == pytest.approx(expected, rel=1e-6)
+    assert model._policy_loss(logits, q, th.tensor(0.2), ALIVE).item() == pytest.approx(expected, rel=1e-6)
     model.stochastic = False  # the greedy limit: cross-entropy to the best action
-    assert model._policy_loss(logits, q, th.tensor(0.2)).item() == pytest.approx(-math.log(0.5), rel=1e-6)
+    greedy = model._policy_loss(logits, q, th.tensor(0.2), ALIVE).item()
+    assert greedy == pytest.approx(-math.log(0.5), rel=1e-6)
 
 
 def test_boltzmann_actor_loss_pulls_up_an_action_of_probability_near_zero():
@@ -77,7 +81,7 @@ def test_boltzmann_actor_loss_pulls_up_an_action_of_probability_near_zero():
     for loss in ("boltzmann", "standard"):
         model.actor_loss = loss
         logits = th.tensor([[[0.0, -20.0]]], requires_grad=True)
-        model._policy_loss(logits, q, th.tensor(0.1)).backward()
+        model._policy_loss(logits, q, th.tensor(0.1), ALIVE).backward()
         gradients[loss] = -logits.grad[0, 0, 1].item()  # how hard a descent step raises action 1
     assert gradients["boltzmann"] > 0.99 and 0 < gradients["standard"] < 1e-7
 
@@ -87,7 +91,7 @@ def test_standard_actor_loss_matches_hand_computation():
     logits = th.log(th.tensor([[[0.5, 0.5]]]))
     q = th.tensor([[[1.0, 2.0]]])
     expected = 0.5 * (0.2 * math.log(0.5) - 1.0) + 0.5 * (0.2 * math.log(0.5) - 2.0)
-    assert model._policy_loss(logits, q, th.tensor(0.2)).item() == pytest.approx(expected, rel=1e-6)
+    assert model._policy_loss(logits, q, th.tensor(0.2), ALIVE).item() == pytest.approx(expected, rel=1e-6)
 
 
 def test_save_load_round_trip(tmp_path):
@@ -163,7 +167,9 @@ def test_alpha_steers_the_entropy_it_is_told(alpha_entropy):
         head.bias.zero_()
     steered = []
     update = model._update_temperature
-    model._update_temperature = lambda entropy, groups: steered.append(entropy) or update(entropy, groups)
+    model._update_temperature = lambda entropy, groups, alive: (
+        steered.append(entropy) or update(entropy, groups, alive)
+    )
     model.train(gradient_steps=1, batch_size=4)
     is_uniform = th.allclose(steered[0], th.full_like(steered[0], math.log(2)))
     assert is_uniform == (alpha_entropy == "boltzmann")

@@ -21,6 +21,7 @@ class GraphSamples(NamedTuple):
     next_observations: th.Tensor  # (batch, n_agents, *obs_shape) float32
     next_neighbors: th.Tensor  # (batch, n_agents, max_neighbors) int64
     terminated: th.Tensor  # (batch, n_agents) float32, 1 where the episode really ended (not time-outs)
+    alive: th.Tensor  # (batch, n_agents) float32, 1 where the agent lived when it acted, 0 for gone agents
     hidden: th.Tensor  # (batch, n_agents, state_dim) recurrent state fed in (zero at episode starts)
     next_hidden: th.Tensor  # (batch, n_agents, state_dim) recurrent state produced by that step
     groups: th.Tensor | None  # (batch, n_agents) int64 group ids (None for one group)
@@ -59,7 +60,9 @@ class GraphReplayBuffer(BaseBuffer):
     per step (by default in float16): row ``t`` holds the state carried into step ``t`` and a flag
     marking episode starts, and the state produced by step ``t`` is the one carried into ``t + 1``.
     With agent groups (an observation key ``group``) the group ids are stored as int8; an agent's
-    group never changes, so they serve the next observations too.
+    group never changes, so they serve the next observations too. Every transition records whether
+    its agent was alive when it acted: the rows of agents that died or left before the step are
+    kept (a graph keeps all its slots) but sampled with ``alive = 0``, for the losses to leave out.
 
     :param buffer_size: capacity in agent-transitions.
     :param observation_space: the graph VecEnv's Dict space (keys ``obs`` and ``neighbors``).
@@ -101,6 +104,7 @@ class GraphReplayBuffer(BaseBuffer):
         self.actions = np.zeros(rows, dtype=action_dtype)
         self.rewards = np.zeros(rows, dtype=np.float32)
         self.terminated = np.zeros(rows, dtype=bool)
+        self.alive = np.zeros(rows, dtype=bool)
         self.hidden = np.zeros((*rows, state_dim), dtype=hidden_dtype)
         self.episode_starts = np.zeros(rows[:2], dtype=bool)
         self.groups = np.zeros(rows, dtype=np.int8) if "group" in observation_space.spaces else None
@@ -117,7 +121,8 @@ class GraphReplayBuffer(BaseBuffer):
         """Bytes held by all storage arrays."""
         arrays = (
             self.observations, self.next_observations, self.neighbors, self.next_neighbors,
-            self.actions, self.rewards, self.terminated, self.hidden, self.episode_starts, self.groups,
+            self.actions, self.rewards, self.terminated, self.alive, self.hidden, self.episode_starts,
+            self.groups,
         )  # fmt: skip
         return sum(array.nbytes for array in arrays if array is not None)
 
@@ -131,6 +136,7 @@ class GraphReplayBuffer(BaseBuffer):
         hidden: np.ndarray,
         episode_starts: np.ndarray,
         next_hidden: np.ndarray,
+        alive: np.ndarray | None = None,
     ) -> None:
         """Store one step of all slots.
 
@@ -143,6 +149,8 @@ class GraphReplayBuffer(BaseBuffer):
             episode starts.
         :param episode_starts: ``(n_envs,)`` bool, ``obs`` is the first of an episode.
         :param next_hidden: ``(n_envs, state_dim)`` state produced by this step.
+        :param alive: ``(n_envs,)`` bool, the agents alive in ``obs`` (``None``: all), those whose
+            transitions count; an agent dying at this step is alive in ``obs`` (and ``terminated``).
         """
         shape = (self.n_copies, self.n_agents)
         obs_shape = self.observations.shape[3:]
@@ -154,6 +162,7 @@ class GraphReplayBuffer(BaseBuffer):
         self.actions[pos] = actions.reshape(shape)
         self.rewards[pos] = rewards.reshape(shape)
         self.terminated[pos] = terminated.reshape(shape)
+        self.alive[pos] = True if alive is None else alive.reshape(shape)
         self.hidden[pos] = hidden.reshape(*shape, -1)
         self.episode_starts[pos] = episode_starts.reshape(shape)[:, 0]
         if self.groups is not None:
@@ -163,6 +172,13 @@ class GraphReplayBuffer(BaseBuffer):
         self.hidden[self.pos] = next_hidden.reshape(*shape, -1)
         if self.pos == 0:
             self.full = True
+
+    def __setstate__(self, state: dict) -> None:
+        """Restore a pickled buffer; one saved before transitions recorded who was alive has every
+        agent alive, as its env could not lose agents."""
+        self.__dict__.update(state)
+        if "alive" not in state:
+            self.alive = np.ones(self.rewards.shape, dtype=bool)
 
     def sample(self, batch_size: int, env=None) -> GraphSamples:
         """Draw ``batch_size`` graphs uniformly from the stored steps and copies."""
@@ -198,6 +214,7 @@ class GraphReplayBuffer(BaseBuffer):
             next_observations=floats(self.next_observations[rows, copies]),
             next_neighbors=longs(self.next_neighbors[rows, copies]),
             terminated=floats(self.terminated[rows, copies]),
+            alive=floats(self.alive[rows, copies]),
             hidden=floats(hidden),
             next_hidden=floats(self.hidden[next_rows, copies]),
             groups=None if self.groups is None else longs(self.groups[rows, copies]),

@@ -104,6 +104,13 @@ class GraphParallelEnv(ParallelEnv):
         """The communication graph of the current state (see :meth:`neighbors`)."""
         raise NotImplementedError
 
+    @property
+    def alive(self) -> np.ndarray:
+        """``(n_agents,)`` bool: the agents still in the episode. Agents of the envs built on this
+        class never leave before the episode ends, so all are; an env whose agents die or leave
+        says which are gone (see :class:`~sb3_hgrn.common.vec_env.ParallelEnvAdapter`)."""
+        return np.ones(self.n_agents, dtype=bool)
+
     # --- pickling ---------------------------------------------------------------------------
     def _bind_views(self) -> None:
         """Set the attributes that are views into other arrays (none here). Subclasses that keep

@@ -37,7 +37,8 @@ TRAINING_STATE_KEYS = frozenset(
     "num_timesteps env last_obs last_episode_starts last_hidden team_episodes "
     "torch_rng cuda_rng numpy_rng python_rng".split()
 )
-"""The entries of :meth:`GraphOffPolicyAlgorithm.get_training_state`."""
+"""The entries every :meth:`GraphOffPolicyAlgorithm.get_training_state` holds (its ``last_alive``,
+the agents alive in the last observation, may be missing from older states: all were alive then)."""
 
 
 def check_graph_env(env: Any) -> VecEnv:
@@ -59,6 +60,13 @@ def check_graph_env(env: Any) -> VecEnv:
         )
     check_graph_spaces(env.observation_space, env.action_space)
     return env
+
+
+def masked_mean(values: th.Tensor, mask: th.Tensor) -> th.Tensor:
+    """Mean of ``values`` ``(batch, n_agents)`` over the entries where ``mask`` (same shape, 1 or 0)
+    is 1: the per-agent losses of the agents alive at their step, those of gone agents adding
+    exactly zero (their values must be finite) to the value and its gradient."""
+    return (values * mask).sum() / mask.sum().clamp(min=1.0)
 
 
 def _is_integer(value: Any) -> bool:
@@ -257,6 +265,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         if env is not None and len(env_action_counts(env)) > 1:
             self.policy_kwargs["group_n_actions"] = env_action_counts(env)
         self._last_hidden: np.ndarray | None = None
+        self._last_alive: np.ndarray | None = None  # (n_envs,) bool, the agents alive in _last_obs
         self._team_episodes: deque = deque(maxlen=stats_window_size)
 
     # --- model set-up -------------------------------------------------------------------------
@@ -289,12 +298,13 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         )
 
     def _update_temperature(
-        self, entropy: th.Tensor, groups: th.Tensor | None
+        self, entropy: th.Tensor, groups: th.Tensor | None, alive: th.Tensor
     ) -> tuple[np.ndarray, float | None]:
         """Measure the mean policy entropy of every group from the per-agent entropies
-        ``(batch, n_agents)`` and step alpha toward the targets; returns the group entropies and
-        alpha's mean gradient (``None`` when alpha is not learned)."""
-        group_entropy = group_means(entropy.detach(), groups, self.policy.n_groups)
+        ``(batch, n_agents)`` of the living agents (``alive`` ``(batch, n_agents)``, 1 or 0) and step
+        alpha toward the targets; returns the group entropies and alpha's mean gradient (``None``
+        when alpha is not learned)."""
+        group_entropy = group_means(entropy.detach(), groups, self.policy.n_groups, alive)
         gradient = self.temperature.update(group_entropy) if self.stochastic and self.learn_alpha else None
         return group_entropy.cpu().numpy(), gradient
 
@@ -343,6 +353,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         if buffer is None or buffer.n_envs != env.num_envs or buffer.n_agents != env.n_agents:
             self._make_replay_buffer()
         self._last_hidden = None
+        self._last_alive = None
 
     @staticmethod
     def _wrap_env(env: GymEnv, verbose: int = 0, monitor_wrapper: bool = True) -> VecEnv:
@@ -432,6 +443,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
             "last_obs": {key: value.copy() for key, value in self._last_obs.items()},
             "last_episode_starts": self._last_episode_starts.copy(),
             "last_hidden": self._last_hidden.copy(),
+            "last_alive": self._last_alive.copy(),
             "team_episodes": list(self._team_episodes),
             "torch_rng": th.get_rng_state().numpy(),
             "cuda_rng": [state.numpy() for state in th.cuda.get_rng_state_all()]
@@ -460,6 +472,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         self._last_obs = state["last_obs"]
         self._last_episode_starts = state["last_episode_starts"]
         self._last_hidden = state["last_hidden"]
+        self._last_alive = state.get("last_alive", np.ones(self.n_envs, dtype=bool))
         self._team_episodes.clear()
         self._team_episodes.extend(state["team_episodes"])
         th.set_rng_state(th.from_numpy(state["torch_rng"]))
@@ -476,7 +489,13 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         return ["policy.optimizer"]
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "_last_hidden", "_team_episodes", "exploration_schedule"]
+        return [
+            *super()._excluded_save_params(),
+            "_last_hidden",
+            "_last_alive",
+            "_team_episodes",
+            "exploration_schedule",
+        ]
 
     # --- collection -----------------------------------------------------------------------------
     def _setup_learn(self, total_timesteps, callback=None, reset_num_timesteps=True, tb_log_name="run",
@@ -490,6 +509,8 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         if reset or self._last_hidden is None or self._last_hidden.shape[0] != self.n_envs:
             self._last_hidden = np.zeros((self.n_envs, self.policy.state_dim), dtype=np.float32)
             self._last_episode_starts = np.ones(self.n_envs, dtype=bool)
+        if reset or self._last_alive is None or self._last_alive.shape[0] != self.n_envs:
+            self._last_alive = self.env.alive
         return result
 
     def _choose_actions(self, hidden: np.ndarray, learning_starts: int) -> tuple[np.ndarray, np.ndarray]:
@@ -513,19 +534,16 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         return self.policy.act(obs, hidden, deterministic=False)
 
     def _final_observations(self, new_obs: dict[str, np.ndarray], dones: np.ndarray, infos: list[dict]):
-        """Next observations with each ended episode's final observation, and true terminations."""
-        terminated = np.zeros(self.n_envs, dtype=bool)
+        """Next observations with each ended episode's final observation in place of its reset one."""
         if not dones.any():
-            return new_obs, terminated
+            return new_obs
         next_obs = {key: value.copy() for key, value in new_obs.items()}
         n = self.n_agents
         for first_slot in np.flatnonzero(dones[::n]) * n:
-            team = infos[first_slot]["team_episode"]
             slots = slice(first_slot, first_slot + n)
-            for key, value in team["final_observation"].items():
+            for key, value in infos[first_slot]["team_episode"]["final_observation"].items():
                 next_obs[key][slots] = value
-            terminated[slots] = team["terminated"]
-        return next_obs, terminated
+        return next_obs
 
     def collect_rollouts(
         self,
@@ -557,12 +575,12 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
             if not callback.on_step():
                 return RolloutReturn(n_steps * n_copies, n_episodes, continue_training=False)
 
-            next_obs, terminated = self._final_observations(new_obs, dones, infos)
+            next_obs = self._final_observations(new_obs, dones, infos)
             replay_buffer.add(
-                self._last_obs, next_obs, actions, rewards, terminated,
-                self._last_hidden, self._last_episode_starts, next_hidden,
+                self._last_obs, next_obs, actions, rewards, env.terminations,
+                self._last_hidden, self._last_episode_starts, next_hidden, self._last_alive,
             )  # fmt: skip
-            self._last_obs, self._last_hidden = new_obs, next_hidden
+            self._last_obs, self._last_hidden, self._last_alive = new_obs, next_hidden, env.alive
             self._last_episode_starts = np.asarray(dones, dtype=bool)
             self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)
             self._on_step()

@@ -69,17 +69,20 @@ def categorical_entropy(logits: th.Tensor) -> th.Tensor:
     return -(log_probs.exp() * log_probs).sum(dim=-1)
 
 
-def group_means(values: th.Tensor, groups: th.Tensor | None, n_groups: int) -> th.Tensor:
+def group_means(
+    values: th.Tensor, groups: th.Tensor | None, n_groups: int, weights: th.Tensor | None = None
+) -> th.Tensor:
     """Mean of ``values`` ``(batch, n_agents)`` over the agents of each group: ``(n_groups,)``
-    (NaN for a group absent from the batch)."""
+    (NaN for a group absent from the batch). With ``weights`` ``(batch, n_agents)`` (1 for the
+    agents to count, 0 for the others, e.g. agents gone from their episode) only the counted agents
+    take part."""
+    weights = th.ones_like(values) if weights is None else weights.to(values.dtype)
     if groups is None:
-        return values.mean().reshape(1)
+        return ((values * weights).sum() / weights.sum()).reshape(1)
     flat_groups = groups.reshape(-1)
-    totals = th.zeros(n_groups, dtype=values.dtype, device=values.device).index_add_(
-        0, flat_groups, values.reshape(-1)
-    )
-    counts = th.bincount(flat_groups, minlength=n_groups).to(values.dtype)
-    return totals / counts
+    zeros = values.new_zeros(n_groups)
+    totals = zeros.index_add(0, flat_groups, (values * weights).reshape(-1))
+    return totals / zeros.index_add(0, flat_groups, weights.reshape(-1))
 
 
 class TemperatureController:

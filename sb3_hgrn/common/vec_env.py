@@ -7,7 +7,8 @@ Each slot observes a dict with
 * ``"obs"``: ``obs_shape`` the agent's local observation, a ``Box`` of any shape (``(obs_dim,)``,
   or e.g. ``(13, 13, 5)`` map views) in the env's own (compact) dtype and shape;
 * ``"neighbors"``: ``(max_neighbors,)`` int32 indices of its neighbours within the same copy, the
-  agent itself first, ``-1`` for unused entries;
+  agent itself first, ``-1`` for unused entries (and all ``-1`` for an agent that died or left,
+  see :class:`GraphVecEnv`);
 * with several agent groups (heterogeneous envs) also ``"group"``: ``()`` int8 the agent's group id
   and ``"action_mask"``: ``(n_actions,)`` int8, 1 for the actions of its group. 1-D observations are
   then zero-padded to the widest group (observations of more dimensions must have one shape in all
@@ -51,6 +52,12 @@ class ParallelEnvAdapter(GraphParallelEnv):
     The wrapped env must give every agent the same spaces, have a ``max_neighbors`` attribute and a
     ``neighbors()`` method returning ``(n_agents, max_neighbors)`` agent indices in
     ``possible_agents`` order, the agent itself first (``-1`` = none).
+
+    Agents may die or leave during an episode, as PettingZoo allows: an agent is alive while it is
+    in the env's ``agents`` list (:attr:`alive`). Only living agents get actions; the arrays keep a
+    row for every agent of ``possible_agents``, a gone agent's row holding its last observation, a
+    reward of 0 and no done flags. Stepping an env without agents left raises a ``RuntimeError``
+    before the env is called.
     """
 
     def __init__(self, env: ParallelEnv):
@@ -75,27 +82,69 @@ class ParallelEnvAdapter(GraphParallelEnv):
             )
         self.max_neighbors = int(env.max_neighbors)
         self.render_mode = getattr(env, "render_mode", None)
+        space = self.shared_observation_space
+        # the row of an agent not observed yet: the point of the space nearest to zero
+        self._observations = np.full(
+            (self.n_agents, *space.shape), np.clip(0, space.low, space.high), dtype=space.dtype
+        )
+        self._alive = np.zeros(self.n_agents, dtype=bool)
+
+    @property
+    def alive(self) -> np.ndarray:
+        """``(n_agents,)`` bool: the agents in the env's ``agents`` list after the last reset or step."""
+        return self._alive.copy()
 
     def reset_arrays(self, seed: int | None = None, options: dict | None = None) -> np.ndarray:
         observations, _ = self.env.reset(seed=seed, options=options)
-        return np.stack([observations[agent] for agent in self.possible_agents])
+        self._store_observations(observations)
+        self._alive = self._listed(self.env.agents)
+        return self._observations.copy()
 
     def step_arrays(self, actions: np.ndarray):
-        agents = self.possible_agents
-        observations, rewards, terminations, truncations, _ = self.env.step(
-            dict(zip(agents, actions.tolist(), strict=True))
-        )
-        if set(observations) != set(agents):
-            raise NotImplementedError(
-                "Agents left the episode before its end; graph envs keep every agent until the end."
+        agents = list(getattr(self.env, "agents", None) or ())
+        if not agents:
+            raise RuntimeError(
+                f"{type(self.env).__name__} has no agents left: every agent has died or left, so its "
+                "episode is over and it was not stepped; call reset() first."
             )
+        rows = self._rows(agents)
+        observations, rewards, terminations, truncations, _ = self.env.step(
+            dict(zip(agents, actions[rows].tolist(), strict=True))
+        )
+        self._store_observations(observations)
+        self._alive = self._listed(self.env.agents)
+        n, possible = self.n_agents, self.possible_agents
         return (
-            np.stack([observations[agent] for agent in agents]),
-            np.array([rewards[agent] for agent in agents], dtype=np.float32),
-            np.array([terminations[agent] for agent in agents], dtype=bool),
-            np.array([truncations[agent] for agent in agents], dtype=bool),
+            self._observations.copy(),
+            np.fromiter((rewards.get(agent, 0.0) for agent in possible), dtype=np.float32, count=n),
+            np.fromiter((terminations.get(agent, False) for agent in possible), dtype=bool, count=n),
+            np.fromiter((truncations.get(agent, False) for agent in possible), dtype=bool, count=n),
             {},
         )
+
+    def _rows(self, agents: Sequence[str]) -> np.ndarray:
+        """The ``possible_agents`` index of every agent in ``agents``, or a ``ValueError`` naming one
+        that is not a possible agent."""
+        index = self._agent_index
+        unknown = [agent for agent in agents if agent not in index]
+        if unknown:
+            raise ValueError(
+                f"{type(self.env).__name__} reports the agent {unknown[0]!r}, which is not in its "
+                "possible_agents."
+            )
+        return np.fromiter((index[agent] for agent in agents), dtype=np.int64, count=len(agents))
+
+    def _listed(self, agents: Sequence[str]) -> np.ndarray:
+        """``(n_agents,)`` bool: which possible agents ``agents`` holds."""
+        listed = np.zeros(self.n_agents, dtype=bool)
+        listed[self._rows(agents)] = True
+        return listed
+
+    def _store_observations(self, observations: dict[str, np.ndarray]) -> None:
+        """Write the observations the env returned into the rows of their agents (the others keep
+        their last one)."""
+        if observations:
+            self._observations[self._rows(list(observations))] = np.stack(list(observations.values()))
 
     def neighbors(self) -> np.ndarray:
         return np.asarray(self.env.neighbors())
@@ -105,6 +154,15 @@ class ParallelEnvAdapter(GraphParallelEnv):
 
     def close(self) -> None:
         self.env.close()
+
+
+def living_neighbors(graph: np.ndarray, alive: np.ndarray) -> np.ndarray:
+    """Neighbour lists ``(n_agents, max_neighbors)`` int32 of the living agents only: every entry
+    naming a gone agent becomes ``-1`` and a gone agent's own list is all ``-1``, so it sends and
+    receives no messages. ``graph``: valid lists in ``[-1, n_agents - 1]``; ``alive``: ``(n_agents,)``
+    bool."""
+    listed = np.append(alive, False)[graph]  # entry -1 reads the appended False
+    return np.where(listed & alive[:, None], graph, -1).astype(np.int32)
 
 
 def _check_groups(env: GraphParallelEnv) -> None:
@@ -161,10 +219,18 @@ class GraphVecEnv(VecEnv):
     Copies are stepped in this process (one Python call per copy, none per agent). Every observation
     a copy returns (also the final one of an episode) is checked at once: a NaN or infinite value, one
     outside the observation space, or a neighbour index that is not a whole number in
-    ``[-1, n_agents - 1]`` raises a ``ValueError`` naming the agent, its copy and the step. A copy resets
-    when all its agents are done; its slots then report ``done=True``, the final observation in
-    ``info["terminal_observation"]``, ``info["TimeLimit.truncated"]`` for time-limit ends and the
-    team's episode figures in ``info["team_episode"]`` (see :meth:`_finish_episode`).
+    ``[-1, n_agents - 1]`` raises a ``ValueError`` naming the agent, its copy and the step.
+
+    Agents may die or leave before their copy's episode ends (an agent whose env reports it
+    terminated or truncated, or drops it from its ``agents`` list): a gone agent keeps its slot,
+    and :attr:`alive` ``(num_envs,)`` says after every step and reset which slots hold a living
+    agent. A gone agent sends and receives no messages (it is removed from every neighbour list and
+    its own list is all ``-1``), earns a reward of 0 and counts in no team return; its slot keeps its
+    last observation, and :attr:`terminations` ``(num_envs,)`` marks the step at which an agent's
+    episode really ended (not time limits). A copy resets when none of its agents is left; its
+    slots then report ``done=True``, the final observation in ``info["terminal_observation"]``,
+    ``info["TimeLimit.truncated"]`` for time-limit ends and the team's episode figures in
+    ``info["team_episode"]`` (see :meth:`_finish_episode`), and all its agents are alive again.
 
     :param env_fns: one callable per copy, each returning a PettingZoo ``ParallelEnv``.
     """
@@ -215,15 +281,31 @@ class GraphVecEnv(VecEnv):
         self._actions = np.zeros(self.num_envs, dtype=np.int64)
         self._team_returns = np.zeros(self.n_copies, dtype=np.float64)
         self._episode_lengths = np.zeros(self.n_copies, dtype=np.int64)
+        self._alive = np.ones((self.n_copies, self.n_agents), dtype=bool)
+        self._terminations = np.zeros((self.n_copies, self.n_agents), dtype=bool)
+
+    @property
+    def alive(self) -> np.ndarray:
+        """``(num_envs,)`` bool: the slots whose agent is alive in the last observations returned
+        (by :meth:`reset` or :meth:`step`; all slots of a copy that was just reset)."""
+        return self._alive.reshape(-1).copy()
+
+    @property
+    def terminations(self) -> np.ndarray:
+        """``(num_envs,)`` bool: the slots whose agent's episode really ended (it died, or its copy's
+        episode terminated) at the last :meth:`step`; time-limit ends and agents gone before are
+        ``False``."""
+        return self._terminations.reshape(-1).copy()
 
     # --- VecEnv API ----------------------------------------------------------------------------
     def reset(self) -> VecEnvObs:
         self._team_returns[:] = 0.0
         self._episode_lengths[:] = 0
+        self._terminations[:] = False
         observations, neighbors = [], []
         for copy, (env, seed) in enumerate(zip(self.envs, self._seeds_per_copy, strict=True)):
             obs = env.reset_arrays(seed=seed, options=self._options[copy * self.n_agents] or None)
-            obs, graph = self._checked(copy, obs, env.neighbors())
+            obs, graph = self._started(copy, env, obs)
             observations.append(obs)
             neighbors.append(graph)
         self._seeds_per_copy = [None] * self.n_copies
@@ -243,25 +325,28 @@ class GraphVecEnv(VecEnv):
         observations, neighbors, rewards, dones = [], [], [], []
         infos: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
         for copy, env in enumerate(self.envs):
+            acting = self._alive[copy].copy()
             obs, reward, terminated, truncated, team_info = env.step_arrays(
                 self._actions[copy * n : (copy + 1) * n]
             )
+            # agents gone before this step earn nothing and end nothing
+            reward = np.where(acting, reward, np.float32(0.0))
+            terminated, truncated = terminated & acting, truncated & acting
+            self._terminations[copy] = terminated
+            self._alive[copy] = acting & ~(terminated | truncated) & env.alive
             self._team_returns[copy] += float(reward.sum())
             self._episode_lengths[copy] += 1
-            done = terminated | truncated
-            obs, graph = self._checked(copy, obs, env.neighbors())
-            if done.all():
+            ended = not self._alive[copy].any()
+            # an episode cut short by a time limit ends with the graph of its last agents intact
+            members = acting & ~terminated if ended else self._alive[copy]
+            obs, graph = self._observed(copy, env, obs, members)
+            if ended:
                 self._finish_episode(copy, obs, graph, terminated, truncated, team_info, infos)
-                obs, graph = self._checked(copy, env.reset_arrays(), env.neighbors())
-            elif done.any():
-                raise NotImplementedError(
-                    "Some agents ended their episode before the others; graph envs must keep every "
-                    "agent until the episode ends."
-                )
+                obs, graph = self._started(copy, env, env.reset_arrays())
             observations.append(obs)
             neighbors.append(graph)
             rewards.append(reward)
-            dones.append(np.full(n, done.all()))
+            dones.append(np.full(n, ended))
         return (
             self._stack(observations, neighbors),
             np.concatenate(rewards).astype(np.float32, copy=False),
@@ -295,6 +380,25 @@ class GraphVecEnv(VecEnv):
             }
         self._team_returns[copy] = 0.0
         self._episode_lengths[copy] = 0
+
+    def _started(self, copy: int, env: GraphParallelEnv, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_observed` for the first observations of an episode, which must have a living agent."""
+        self._alive[copy] = env.alive
+        if not self._alive[copy].any():
+            raise ValueError(f"Env copy {copy} ({type(env).__name__}) has no agents after its reset.")
+        return self._observed(copy, env, obs, self._alive[copy])
+
+    def _observed(
+        self, copy: int, env: GraphParallelEnv, obs: np.ndarray, members: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """One copy's checked observations and the neighbour lists of its graph's ``members``
+        ``(n_agents,)`` bool (see :func:`living_neighbors`); without members the env's graph is not
+        asked for."""
+        if not members.any():
+            graph = np.full((self.n_agents, self.max_neighbors), -1, dtype=np.int32)
+            return self._checked(copy, obs, graph)
+        obs, graph = self._checked(copy, obs, env.neighbors())
+        return obs, graph if members.all() else living_neighbors(graph, members)
 
     def _checked(self, copy: int, obs: np.ndarray, graph: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One copy's observations ``(n_agents, *obs_shape)`` and neighbours ``(n_agents, max_neighbors)``
@@ -335,9 +439,10 @@ class GraphVecEnv(VecEnv):
         """The state of every copy and of this VecEnv's own counters, as a pickle (cloudpickle).
 
         The copies are pickled whole (their random generators, positions, step counters, ...), with
-        the running team returns and episode lengths and the seeds and options of the next
-        :meth:`reset`; :meth:`set_state` on a VecEnv of the same env makes it step on exactly as this
-        one would. Raises :class:`UnpicklableEnvError` naming the env when a copy cannot be pickled.
+        the running team returns and episode lengths, which agents are alive, and the seeds and
+        options of the next :meth:`reset`; :meth:`set_state` on a VecEnv of the same env makes it
+        step on exactly as this one would. Raises :class:`UnpicklableEnvError` naming the env when a
+        copy cannot be pickled.
         """
         state = {
             "n_copies": self.n_copies,
@@ -345,6 +450,8 @@ class GraphVecEnv(VecEnv):
             "envs": self.envs,
             "team_returns": self._team_returns,
             "episode_lengths": self._episode_lengths,
+            "alive": self._alive,
+            "terminations": self._terminations,
             "seeds_per_copy": self._seeds_per_copy,
             "options": self._options,
         }
@@ -372,6 +479,9 @@ class GraphVecEnv(VecEnv):
         self.envs = loaded["envs"]
         self._team_returns = loaded["team_returns"]
         self._episode_lengths = loaded["episode_lengths"]
+        # states of VecEnvs whose agents could not die have every agent alive
+        self._alive = loaded.get("alive", np.ones((self.n_copies, self.n_agents), dtype=bool))
+        self._terminations = loaded.get("terminations", np.zeros((self.n_copies, self.n_agents), dtype=bool))
         self._seeds_per_copy = loaded["seeds_per_copy"]
         self._options = loaded["options"]
 

@@ -11,7 +11,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, Schedule
 from stable_baselines3.common.utils import polyak_update
 
-from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
+from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm, masked_mean
 from sb3_hgrn.common.temperature import categorical_entropy
 from sb3_hgrn.sac_hgrn.policies import SACHGRNPolicy
 
@@ -51,6 +51,9 @@ class SACHGRN(GraphOffPolicyAlgorithm):
       a last-step choice) is hardly ever taken up again (docs/results.md);
     - ``"policy_gradient"`` (the paper's form): ``-log pi(a|o) (Q(o, a) - alpha log pi(a|o))`` for
       ``a`` sampled from the policy.
+
+    Losses and entropies are means over the agents alive at their step (see
+    :class:`~sb3_hgrn.common.vec_env.GraphVecEnv` for agents that die).
 
     Each gradient step updates the critics, then the actor, then alpha (toward
     ``target_entropy_ratio * log|A|`` on the actor's entropy, or on that of the critic's Boltzmann
@@ -182,18 +185,22 @@ class SACHGRN(GraphOffPolicyAlgorithm):
         log_probs = th.log_softmax(next_logits, dim=-1)
         return (log_probs.exp() * (next_q - alpha * log_probs)).sum(dim=-1)
 
-    def _policy_loss(self, logits: th.Tensor, q_values: th.Tensor, alpha: th.Tensor) -> th.Tensor:
-        """Actor loss from its logits and the (detached) critic Q-values ``(batch, n_agents, n_actions)``."""
+    def _policy_loss(
+        self, logits: th.Tensor, q_values: th.Tensor, alpha: th.Tensor, alive: th.Tensor
+    ) -> th.Tensor:
+        """Actor loss from its logits and the (detached) critic Q-values ``(batch, n_agents, n_actions)``,
+        averaged over the agents ``alive`` ``(batch, n_agents)`` (1 or 0)."""
         log_probs = th.log_softmax(logits, dim=-1)
         if self.actor_loss == "boltzmann":
-            return boltzmann_divergence(log_probs, q_values, alpha if self.stochastic else None).mean()
+            divergence = boltzmann_divergence(log_probs, q_values, alpha if self.stochastic else None)
+            return masked_mean(divergence, alive)
         alpha = alpha if self.stochastic else th.zeros_like(alpha)
         if self.actor_loss == "standard":
-            return (log_probs.exp() * (alpha * log_probs - q_values)).sum(dim=-1).mean()
+            return masked_mean((log_probs.exp() * (alpha * log_probs - q_values)).sum(dim=-1), alive)
         actions = th.distributions.Categorical(logits=logits.detach()).sample().unsqueeze(-1)
         log_prob = log_probs.gather(-1, actions)  # (batch, n_agents, 1), as alpha per agent
         advantage = q_values.gather(-1, actions) - alpha * log_prob.detach()
-        return -(log_prob * advantage).mean()
+        return -masked_mean((log_prob * advantage).squeeze(-1), alive)
 
     def train(self, gradient_steps: int, batch_size: int = 32) -> None:
         policy = self.policy
@@ -225,7 +232,10 @@ class SACHGRN(GraphOffPolicyAlgorithm):
                 for critic, state in zip(policy.critics, critic_states, strict=True)
             ]
             actions = batch.actions.unsqueeze(-1)
-            critic_loss = sum(F.mse_loss(q.gather(-1, actions).squeeze(-1), target_q) for q in q_values)
+            critic_loss = sum(
+                masked_mean((q.gather(-1, actions).squeeze(-1) - target_q) ** 2, batch.alive)
+                for q in q_values
+            )
             policy.critic_optimizer.zero_grad()
             critic_loss.backward()
             th.nn.utils.clip_grad_norm_(policy.critics.parameters(), self.max_grad_norm)
@@ -234,14 +244,16 @@ class SACHGRN(GraphOffPolicyAlgorithm):
             min_q = th.stack([q.detach() for q in q_values]).amin(dim=0)
             for _ in range(self.actor_steps):
                 logits, _ = policy.actor_logits(batch.observations, graph, actor_state, batch.groups)
-                actor_loss = self._policy_loss(logits, min_q, alpha)
+                actor_loss = self._policy_loss(logits, min_q, alpha, batch.alive)
                 policy.actor_optimizer.zero_grad()
                 actor_loss.backward()
                 th.nn.utils.clip_grad_norm_(policy.actor.parameters(), self.max_grad_norm)
                 policy.actor_optimizer.step()
 
             steered = logits if self.alpha_entropy == "actor" else min_q / alpha
-            entropy, alpha_gradient = self._update_temperature(categorical_entropy(steered), batch.groups)
+            entropy, alpha_gradient = self._update_temperature(
+                categorical_entropy(steered), batch.groups, batch.alive
+            )
             if alpha_gradient is not None:
                 alpha_gradients.append(alpha_gradient)
             critic_losses.append(critic_loss.item())

@@ -6,12 +6,11 @@ from typing import Any, ClassVar
 
 import numpy as np
 import torch as th
-import torch.nn.functional as F
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, Schedule
 from stable_baselines3.common.utils import polyak_update
 
-from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
+from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm, masked_mean
 from sb3_hgrn.common.temperature import categorical_entropy
 from sb3_hgrn.soft_hgrn.policies import SoftHGRNPolicy
 
@@ -28,6 +27,8 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
     The policy is ``softmax(Q / alpha)``; the critic regresses on
     ``r + gamma * (1 - terminated) * alpha * logsumexp(Q_target(o', .) / alpha)`` and alpha is
     learned so that the mean action entropy tracks ``target_entropy_ratio * log(n_actions)``.
+    Losses and entropies are means over the agents alive at their step (see
+    :class:`~sb3_hgrn.common.vec_env.GraphVecEnv` for agents that die).
     With ``stochastic=False`` it is the deterministic ``-S`` variant: greedy actions, hard-max
     targets and epsilon-greedy exploration.
 
@@ -152,14 +153,14 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
             graph = self.policy.graph_batch(batch.neighbors, batch.groups)
             q_values, _ = q_net(batch.observations, graph, batch.hidden)
             taken_q = q_values.gather(-1, batch.actions.unsqueeze(-1)).squeeze(-1)
-            loss = F.mse_loss(taken_q, target_q)
+            loss = masked_mean((taken_q - target_q) ** 2, batch.alive)
             self.policy.optimizer.zero_grad()
             loss.backward()
             th.nn.utils.clip_grad_norm_(q_net.parameters(), self.max_grad_norm)
             self.policy.optimizer.step()
 
             entropy, alpha_gradient = self._update_temperature(
-                categorical_entropy(q_values.detach() / alpha), batch.groups
+                categorical_entropy(q_values.detach() / alpha), batch.groups, batch.alive
             )
             if alpha_gradient is not None:
                 alpha_gradients.append(alpha_gradient)
