@@ -50,8 +50,9 @@ def start_logged(
     args: list[str], log_path: Path, threads: int | None, cwd: str | None = None
 ) -> tuple[subprocess.Popen, Any]:
     """Start ``sb3-hgrn ARGS`` in the directory ``cwd`` (default this process's) with stdout and
-    stderr written to ``log_path`` (overwritten): ``(process, open log file)``."""
-    log_file = open(log_path, "w", encoding="utf-8")  # noqa: SIM115
+    stderr appended to ``log_path`` (a resumed run keeps the log of its killed attempt):
+    ``(process, open log file)``."""
+    log_file = open(log_path, "a", encoding="utf-8")  # noqa: SIM115
     process = subprocess.Popen(
         python_command(args), stdout=log_file, stderr=subprocess.STDOUT, env=child_env(threads), cwd=cwd
     )
