@@ -3,7 +3,7 @@
 from sb3_hgrn.common.evaluation import GraphEvalCallback, RandomGraphPolicy, evaluate_graph_policy
 from sb3_hgrn.common.torch_layers import AgentViewCNN
 from sb3_hgrn.common.vec_env import GraphVecEnv, make_graph_vec_env
-from sb3_hgrn.common.wrappers import GraphFromPositions
+from sb3_hgrn.envs.wrappers import GraphFromPositions
 from sb3_hgrn.sac_hgrn import SACHGRN
 from sb3_hgrn.soft_hgrn import SoftHGRN
 

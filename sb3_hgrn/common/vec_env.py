@@ -34,8 +34,8 @@ from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
 from sb3_hgrn.common.checks import observation_problem, slot_name
-from sb3_hgrn.common.graph_env import GraphParallelEnv
-from sb3_hgrn.common.wrappers import as_parallel_env
+from sb3_hgrn.envs.base import GraphParallelEnv
+from sb3_hgrn.envs.wrappers import as_parallel_env
 
 REGISTERED_ENVS = ("surviving_v0", "uav_mbs_v0", "pursuit_v0", "ctc_v0")
 NEIGHBOR_INDEX_HIGH = np.iinfo(np.int32).max

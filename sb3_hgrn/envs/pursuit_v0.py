@@ -15,9 +15,9 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 
-from sb3_hgrn.common.graph import grid_neighbors
-from sb3_hgrn.common.graph_env import GraphParallelEnv
 from sb3_hgrn.common.policies import GraphPolicy
+from sb3_hgrn.envs.base import GraphParallelEnv
+from sb3_hgrn.envs.graph import grid_neighbors
 
 SIDES = ("predator", "prey")
 SCRIPTED_CONTROLLERS = {"predator": ("random",), "prey": ("random", "evader")}
@@ -61,7 +61,7 @@ class PursuitEnv(GraphParallelEnv):
 
     Graph: learners within Euclidean distance ``comm_range`` of each other (self first, nearest
     first, ties by lower index, at most ``max_neighbors``), see
-    :func:`sb3_hgrn.common.graph.grid_neighbors`.
+    :func:`sb3_hgrn.envs.graph.grid_neighbors`.
 
     Controllers of the other side: ``"random"`` (uniform actions), for prey ``"evader"``
     (:func:`evader_actions`), or a model: any object with an sb3_hgrn-style
