@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from sb3_hgrn.common.position_graph import PositionGraph
+from sb3_hgrn.envs.position_graph import PositionGraph
 
 RADIUS, RADIUS_WIDTH, K = 1.6, 16, 8
 

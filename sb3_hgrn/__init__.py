@@ -1,13 +1,28 @@
-"""sb3_hgrn: graph-recurrent many-agent reinforcement learning for Stable-Baselines3."""
+"""sb3_hgrn: graph-recurrent many-agent reinforcement learning for Stable-Baselines3.
 
-from sb3_hgrn.common.evaluation import GraphEvalCallback, RandomGraphPolicy, evaluate_graph_policy
-from sb3_hgrn.common.torch_layers import AgentViewCNN
-from sb3_hgrn.common.vec_env import GraphVecEnv, make_graph_vec_env
-from sb3_hgrn.common.wrappers import GraphFromPositions
-from sb3_hgrn.sac_hgrn import SACHGRN
-from sb3_hgrn.soft_hgrn import SoftHGRN
+The public names are imported when first used (PEP 562), so that importing the env side,
+:mod:`sb3_hgrn.envs`, does not import torch.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
 
 __version__ = "0.1.0"
+
+_MODULES = {
+    "AgentViewCNN": "sb3_hgrn.common.torch_layers",
+    "GraphEvalCallback": "sb3_hgrn.common.evaluation",
+    "GraphFromPositions": "sb3_hgrn.envs.wrappers",
+    "GraphVecEnv": "sb3_hgrn.common.vec_env",
+    "RandomGraphPolicy": "sb3_hgrn.common.evaluation",
+    "SACHGRN": "sb3_hgrn.sac_hgrn",
+    "SoftHGRN": "sb3_hgrn.soft_hgrn",
+    "evaluate_graph_policy": "sb3_hgrn.common.evaluation",
+    "make_graph_vec_env": "sb3_hgrn.common.vec_env",
+}
+"""The module that defines each public name."""
 
 __all__ = [
     "AgentViewCNN",
@@ -21,3 +36,17 @@ __all__ = [
     "evaluate_graph_policy",
     "make_graph_vec_env",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    """Import a public name from its module on first use (later uses find it in the module)."""
+    module = _MODULES.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})

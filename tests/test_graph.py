@@ -3,8 +3,8 @@ import math
 import numpy as np
 import pytest
 
-from sb3_hgrn.common import graph
-from sb3_hgrn.common.graph import grid_neighbors
+from sb3_hgrn.envs import graph
+from sb3_hgrn.envs.graph import grid_neighbors
 
 
 def brute_force_neighbors(cells: np.ndarray, radius: float, max_neighbors: int, metric: str) -> np.ndarray:

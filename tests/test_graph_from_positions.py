@@ -5,8 +5,8 @@ from pettingzoo import ParallelEnv
 from pettingzoo.utils.conversions import aec_to_parallel_wrapper, parallel_to_aec_wrapper
 
 from sb3_hgrn import GraphFromPositions, SoftHGRN, make_graph_vec_env
-from sb3_hgrn.common.position_graph import PositionGraph
 from sb3_hgrn.envs import surviving_v0
+from sb3_hgrn.envs.position_graph import PositionGraph
 
 
 def brute_force(points, k=None, radius=None, max_neighbors=None, world_size=None):

@@ -9,8 +9,8 @@ from torch import nn
 
 from sb3_hgrn import SACHGRN, AgentViewCNN, SoftHGRN, make_graph_vec_env
 from sb3_hgrn.common.checks import observation_problem
-from sb3_hgrn.common.graph_env import AgentGroup
 from sb3_hgrn.common.hgrn import HGRN
+from sb3_hgrn.envs.base import AgentGroup
 from sb3_hgrn.presets import PRESETS, make_model
 from tests.toy_envs import CornerViewEnv, SignalReaderEnv
 

@@ -5,6 +5,7 @@ import pytest
 from pettingzoo.test import parallel_api_test
 
 from sb3_hgrn import SoftHGRN, make_graph_vec_env
+from sb3_hgrn.common.controllers import ModelController
 from sb3_hgrn.envs import pursuit_v0
 from sb3_hgrn.envs.pursuit_v0 import PursuitEnv, evader_actions
 
@@ -251,7 +252,7 @@ class Recorder:
 def test_model_controller_threads_state_and_is_reproducible(tmp_path):
     model = tiny_prey_model()  # trained 0 steps on the prey side (6 prey)
     recorder = Recorder(model)
-    env = pursuit_v0.parallel_env(map_size=20, max_cycles=4, prey_controller=recorder)  # 10 prey
+    env = pursuit_v0.parallel_env(map_size=20, max_cycles=4, prey_controller=ModelController(recorder))
     assert model.policy.n_agents == 10
     episodes = []
     for _ in range(2):
@@ -265,13 +266,49 @@ def test_model_controller_threads_state_and_is_reproducible(tmp_path):
     assert recorder.calls[1][1][0].shape == (1, 10, model.policy.state_dim)
 
     model.save(tmp_path / "prey.zip")
-    loaded = pursuit_v0.parallel_env(map_size=20, max_cycles=4, prey_controller=tmp_path / "prey")
-    assert isinstance(loaded.controller, SoftHGRN) and loaded.controller.policy.n_agents == 10
+    controller = ModelController(tmp_path / "prey")
+    loaded = pursuit_v0.parallel_env(map_size=20, max_cycles=4, prey_controller=controller)
+    assert isinstance(controller.model, SoftHGRN) and controller.model.policy.n_agents == 10
     loaded.reset_arrays(seed=0)
     loaded.step_arrays(np.zeros(loaded.n_agents, dtype=np.int64))
 
     with pytest.raises(ValueError, match="trained on that side"):
-        pursuit_v0.parallel_env(map_size=16, learners="prey", predator_controller=model)
+        pursuit_v0.parallel_env(map_size=16, learners="prey", predator_controller=ModelController(model))
+
+
+def prey_cells_of_a_vec_env_episode(vec_env, n_steps: int = 4) -> np.ndarray:
+    """Prey cells of copy 0 after each of ``n_steps`` vec-steps in which every predator stays."""
+    vec_env.reset()
+    cells = []
+    for _ in range(n_steps):
+        vec_env.step(np.full(vec_env.num_envs, STAY["predator"]))
+        cells.append(vec_env.envs[0].prey_cells().copy())
+    return np.array(cells)
+
+
+def test_a_saved_model_path_is_loaded_by_make_graph_vec_env_not_by_the_env(tmp_path):
+    tiny_prey_model().save(tmp_path / "prey.zip")
+    path = str(tmp_path / "prey")
+    with pytest.raises(
+        ValueError, match="loads no saved model: pass it loaded .*ModelController.*make_graph_vec_env"
+    ):
+        pursuit_v0.parallel_env(map_size=20, prey_controller=path)
+
+    env_kwargs = dict(map_size=20, max_cycles=10, prey_controller=path)
+    vec_env = make_graph_vec_env(pursuit_v0.parallel_env, n_envs=2, env_kwargs=env_kwargs)
+    controllers = [env.controller for env in vec_env.envs]
+    assert isinstance(controllers[0], ModelController) and controllers[0] is controllers[1]
+    assert isinstance(controllers[0].model, SoftHGRN) and controllers[0].model.policy.n_agents == 10
+    episodes = []
+    for _ in range(2):
+        vec_env.seed(5)
+        episodes.append(prey_cells_of_a_vec_env_episode(vec_env))
+    np.testing.assert_array_equal(*episodes)
+
+
+def test_make_graph_vec_env_names_a_controller_argument_without_a_saved_model(tmp_path):
+    with pytest.raises(ValueError, match=r"prey_controller='chaser': No saved model at 'chaser'"):
+        make_graph_vec_env("pursuit_v0", env_kwargs=dict(map_size=16, prey_controller="chaser"))
 
 
 def test_prey_learners_get_minus_one_per_tag():

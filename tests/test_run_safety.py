@@ -23,11 +23,11 @@ from stable_baselines3.common.save_util import load_from_pkl, save_to_pkl
 
 from sb3_hgrn import SACHGRN, SoftHGRN, evaluate_graph_policy, make_graph_vec_env
 from sb3_hgrn.cli import main
+from sb3_hgrn.common import controllers
 from sb3_hgrn.common.checks import observation_problem
 from sb3_hgrn.common.evaluation import RandomGraphPolicy
 from sb3_hgrn.common.files import DamagedModelFileError, save_model_atomically
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
-from sb3_hgrn.envs import pursuit_v0
 from sb3_hgrn.experiments.callbacks import rewind_team_returns
 from sb3_hgrn.experiments.config import RunConfig
 from sb3_hgrn.experiments.lock import PID_FILE, RunLock
@@ -580,7 +580,7 @@ def test_evaluate_refuses_a_controller_a_config_points_outside_the_run(root, tmp
     outside = tmp_path / "elsewhere" / "prey.zip"
     point_at_controller(folder, str(outside))
     loads = []
-    monkeypatch.setattr(pursuit_v0, "load_controller", lambda *args: loads.append(args))
+    monkeypatch.setattr(controllers, "load_controller", lambda *args: loads.append(args))
     error = fails_with(["evaluate", str(folder), "--episodes", "1"], capsys)
     assert f"sets prey_controller='{outside}', a model outside the run folder" in error
     assert (

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 from pettingzoo.test import parallel_api_test
 
-from sb3_hgrn.common.graph import grid_neighbors
 from sb3_hgrn.envs import surviving_v0
+from sb3_hgrn.envs.graph import grid_neighbors
 from sb3_hgrn.envs.surviving_v0 import SurvivingEnv
 
 UP, DOWN, LEFT, RIGHT, EAT = range(5)  # x - 1, x + 1, y - 1, y + 1, eat

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from pettingzoo.test import parallel_api_test
 
-from sb3_hgrn.common.graph import grid_neighbors
 from sb3_hgrn.envs import uav_mbs_v0
+from sb3_hgrn.envs.graph import grid_neighbors
 from sb3_hgrn.envs.uav_mbs_v0 import UAVMBSEnv, connected_component_labels, view_offsets
 
 E, SE, S, SW, W, NW, N, NE = range(8)

@@ -8,7 +8,7 @@ import numpy as np
 from pettingzoo import ParallelEnv
 
 from sb3_hgrn import SACHGRN, SoftHGRN, evaluate_graph_policy, make_graph_vec_env
-from sb3_hgrn.common.graph_env import AgentGroup, GraphParallelEnv, padded_observation_space
+from sb3_hgrn.envs.base import AgentGroup, GraphParallelEnv, padded_observation_space
 
 
 class NeighborBitEnv(GraphParallelEnv):

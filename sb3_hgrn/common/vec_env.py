@@ -34,8 +34,9 @@ from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
 from sb3_hgrn.common.checks import observation_problem, slot_name
-from sb3_hgrn.common.graph_env import GraphParallelEnv
-from sb3_hgrn.common.wrappers import as_parallel_env
+from sb3_hgrn.common.controllers import resolve_model_paths
+from sb3_hgrn.envs.base import GraphParallelEnv
+from sb3_hgrn.envs.wrappers import as_parallel_env
 
 REGISTERED_ENVS = ("surviving_v0", "uav_mbs_v0", "pursuit_v0", "ctc_v0")
 NEIGHBOR_INDEX_HIGH = np.iinfo(np.int32).max
@@ -556,12 +557,15 @@ def make_graph_vec_env(
         :class:`sb3_hgrn.GraphFromPositions` adds one built from agent positions.
     :param n_envs: number of env copies; the VecEnv has ``n_envs * n_agents`` slots.
     :param seed: copy ``c`` is seeded with ``seed + c`` at the first reset.
-    :param env_kwargs: keyword arguments for the env constructor.
+    :param env_kwargs: keyword arguments for the env constructor. The saved models' paths among them
+        that the env's module names with ``model_paths`` (Pursuit's ``prey_controller="runs/prey.zip"``)
+        are loaded here, once, as controllers shared by the copies (see
+        :func:`~sb3_hgrn.common.controllers.resolve_model_paths`).
     """
     if not isinstance(n_envs, int | np.integer) or isinstance(n_envs, bool) or n_envs < 1:
         raise ValueError(f"n_envs must be a positive integer (env copies), got {n_envs!r}.")
     env_fn = _resolve_env_fn(env, n_envs, bool(env_kwargs))
-    kwargs = dict(env_kwargs or {})
+    kwargs = resolve_model_paths(env_fn, dict(env_kwargs or {}))
     vec_env = GraphVecEnv([lambda: env_fn(**kwargs) for _ in range(n_envs)])
     if seed is not None:
         vec_env.seed(seed)

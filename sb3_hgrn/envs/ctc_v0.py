@@ -11,8 +11,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from sb3_hgrn.common.graph import grid_neighbors
-from sb3_hgrn.common.graph_env import AgentGroup, GraphParallelEnv, binary_table, padded_observation_space
+from sb3_hgrn.envs.base import AgentGroup, GraphParallelEnv, binary_table, padded_observation_space
+from sb3_hgrn.envs.graph import grid_neighbors
 
 HUNTER, RED_BANK, BLUE_BANK = 0, 1, 2  # group ids
 GROUP_NAMES = ("hunter", "red_bank", "blue_bank")
@@ -130,7 +130,7 @@ class TreasureCollectionEnv(GraphParallelEnv):
     encoded ``x`` twice and never ``y``; both are encoded here.
 
     Graph: all agents of all groups within Chebyshev distance ``comm_range`` (self first, nearest first,
-    ties by lower index, at most ``max_neighbors``), see :func:`sb3_hgrn.common.graph.grid_neighbors`.
+    ties by lower index, at most ``max_neighbors``), see :func:`sb3_hgrn.envs.graph.grid_neighbors`.
 
     Rewards are float32. ``team_info`` after each step: ``collected`` (items picked up so far this
     episode), ``delivered_red`` and ``delivered_blue`` (items delivered so far this episode),

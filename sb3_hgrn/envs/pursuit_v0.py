@@ -6,18 +6,14 @@ Needs MAgent2 (``pip install magent2==0.3.4``).
 
 from __future__ import annotations
 
-import json
 import os
-import zipfile
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
-import torch as th
 
-from sb3_hgrn.common.graph import grid_neighbors
-from sb3_hgrn.common.graph_env import GraphParallelEnv
-from sb3_hgrn.common.policies import GraphPolicy
+from sb3_hgrn.envs.base import GraphParallelEnv
+from sb3_hgrn.envs.graph import grid_neighbors
 
 SIDES = ("predator", "prey")
 SCRIPTED_CONTROLLERS = {"predator": ("random",), "prey": ("random", "evader")}
@@ -28,8 +24,6 @@ PREDATOR_BODY = 2  # predators occupy 2 x 2 cells, prey 1 cell
 PREY_MOVES = np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], dtype=np.int32)
 MIN_MAP_SIZE = 9  # the smallest map with a predator: int(9 * 9 * 0.0125) = 1
 SEED_HIGH = 2**31 - 1  # MAgent takes a C int seed
-# sb3_hgrn algorithms by the package of the policy class recorded in a saved zip.
-MODEL_CLASSES = {"sb3_hgrn.soft_hgrn": "SoftHGRN", "sb3_hgrn.sac_hgrn": "SACHGRN"}
 
 
 class PursuitEnv(GraphParallelEnv):
@@ -61,22 +55,28 @@ class PursuitEnv(GraphParallelEnv):
 
     Graph: learners within Euclidean distance ``comm_range`` of each other (self first, nearest
     first, ties by lower index, at most ``max_neighbors``), see
-    :func:`sb3_hgrn.common.graph.grid_neighbors`.
+    :func:`sb3_hgrn.envs.graph.grid_neighbors`.
 
     Controllers of the other side: ``"random"`` (uniform actions), for prey ``"evader"``
-    (:func:`evader_actions`), or a model: any object with an sb3_hgrn-style
-    ``predict(obs_dict, state, episode_start, deterministic)`` (e.g. a loaded ``SoftHGRN``) or the
-    path of a saved sb3_hgrn model (see :func:`load_controller`). A model sees the controlled side's
-    observations and its own graph (``comm_range``, its saved neighbour width); its recurrent state is
-    threaded through the episode and reset at episode starts; the ``n_agents`` of a graph policy is
-    set to the number of controlled agents. Models act with ``controller_deterministic`` and draw
-    their samples from a torch CPU seed taken from the env's generator at every step (a model on a
-    GPU samples from the unseeded CUDA generator).
+    (:func:`evader_actions`), or a model: any object with SB3's ``predict(observation, state=...,
+    episode_start=..., deterministic=...)``, called with ``{"obs": (n, obs_dim) uint8, "neighbors":
+    (n, K) int32}`` for the ``n`` controlled agents and returning ``(actions (n,), state)``. The
+    graph is the controlled side's own (``comm_range``), ``K`` wide: the width of
+    ``observation_space["neighbors"]`` where the model has a Dict observation space, else
+    ``max_neighbors``. Its recurrent state is threaded through the episode and reset at episode
+    starts; it acts with ``controller_deterministic``. Two methods are optional:
+    ``bind(observation_space, n_agents)``, called once here with the controlled side's observation
+    ``Box`` and agent count (to check that the model fits that side and size it to it), and
+    ``seed(seed)``, called with an int from the env's generator before every ``predict``. The env
+    loads no saved model: ``sb3_hgrn.common.controllers.ModelController`` wraps a loaded sb3_hgrn
+    model or a saved one's path and has both methods (its samples repeat with the env's seed), and
+    :func:`sb3_hgrn.make_graph_vec_env` and the command line turn a path given in ``env_kwargs``
+    into one (see :func:`model_paths`).
 
     Seeding: one numpy generator, reseeded by ``reset(seed=...)`` (first reset without a seed: from
     entropy; later unseeded resets continue it), seeds MAgent's engine at every reset (map, walls,
-    placement, order of tags) and drives the random controller and the torch seeds of model
-    controllers, so a seeded episode repeats exactly.
+    placement, order of tags) and drives the random controller and the seeds handed to a model
+    controller's ``seed``, so a seeded episode repeats exactly.
 
     MAgent2 is driven through its raw ``GridWorld`` (``set_action``/``step``/``get_reward``/
     ``get_observation``/``clear_dead`` on group arrays): 0.05 ms per step at map 45 against 0.3 ms
@@ -88,8 +88,6 @@ class PursuitEnv(GraphParallelEnv):
     :param learners: ``"predator"`` or ``"prey"``: the side whose agents are this env's agents.
     :param prey_controller: controller of the prey when predators learn (default ``"evader"``).
     :param predator_controller: controller of the predators when prey learn (default ``"random"``).
-    :param controller_class: sb3_hgrn algorithm class used to load a controller given as a path
-        (``None``: read from the saved zip).
     :param controller_deterministic: greedy actions for model controllers.
     :param tag_penalty: predator reward per tag action.
     :param comm_range: communication range in cells (Euclidean).
@@ -110,7 +108,6 @@ class PursuitEnv(GraphParallelEnv):
         learners: str = "predator",
         prey_controller: Any = None,
         predator_controller: Any = None,
-        controller_class: type | None = None,
         controller_deterministic: bool = False,
         tag_penalty: float = -0.2,
         comm_range: float = 6.0,
@@ -158,9 +155,9 @@ class PursuitEnv(GraphParallelEnv):
         controllers = {"predator": predator_controller, "prey": prey_controller}
         if controllers[learners] is not None:
             raise ValueError(f"{learners}_controller must be None when the {learners} side learns.")
-        self.controller = _resolve_controller(controllers[self.opponents], self.opponents, controller_class)
+        self.controller = _resolve_controller(controllers[self.opponents], self.opponents)
         self._controller_kind = self.controller if isinstance(self.controller, str) else "model"
-        self._controller_width = self._check_model_controller()
+        self._controller_width = self._bind_model_controller()
 
         self._rng: np.random.Generator | None = None
         self._walls = np.zeros((map_size, map_size), dtype=bool)
@@ -171,24 +168,19 @@ class PursuitEnv(GraphParallelEnv):
         self._episode_running = False
         self._cell_cache: dict[str, np.ndarray] = {}
 
-    def _check_model_controller(self) -> int:
-        """Check a model controller against the controlled side; returns its neighbour-list width."""
+    def _bind_model_controller(self) -> int:
+        """Hand a model controller the controlled side (its ``bind``, where it has one); returns the
+        width of the neighbour lists it takes."""
         if self._controller_kind != "model":
             return self.max_neighbors
+        side = self.opponents
+        bind = getattr(self.controller, "bind", None)
+        if callable(bind):
+            bind(gym.spaces.Box(0, 1, (self._obs_dims[side],), dtype=np.uint8), self._sizes[side])
         space = getattr(self.controller, "observation_space", None)
-        width = self.max_neighbors
-        if isinstance(space, gym.spaces.Dict):
-            obs_dim = self._obs_dims[self.opponents]
-            if space["obs"].shape != (obs_dim,):
-                raise ValueError(
-                    f"The {self.opponents} controller takes observations of shape {space['obs'].shape}, "
-                    f"but {self.opponents} observations have shape ({obs_dim},): was it trained on that side?"
-                )
-            width = int(space["neighbors"].shape[0])
-        policy = getattr(self.controller, "policy", self.controller)
-        if isinstance(policy, GraphPolicy):
-            policy.n_agents = self._sizes[self.opponents]
-        return width
+        if isinstance(space, gym.spaces.Dict) and "neighbors" in space.spaces:
+            return int(space["neighbors"].shape[0])
+        return self.max_neighbors
 
     # --- array API ------------------------------------------------------------------------------
     def reset_arrays(self, seed: int | None = None, options: dict | None = None) -> np.ndarray:
@@ -317,16 +309,16 @@ class PursuitEnv(GraphParallelEnv):
             return evader_actions(self.prey_cells(), self.predator_cells(), self._walls).astype(np.int32)
         graph = grid_neighbors(self._cells(side), self.comm_range, self._controller_width, "euclidean")
         observations = {"obs": self._observe(side), "neighbors": graph.astype(np.int32)}
-        # A seed per step from the env's generator makes sampling models repeatable; the caller's
-        # torch RNG state is restored (th.manual_seed is 100x slower than seeding the CPU generator).
-        with th.random.fork_rng(devices=[]):
-            th.default_generator.manual_seed(int(self._rng.integers(SEED_HIGH)))
-            actions, self._controller_state = self.controller.predict(
-                observations,
-                state=self._controller_state,
-                episode_start=self._controller_episode_start,
-                deterministic=self.controller_deterministic,
-            )
+        # A seed per step from the env's generator makes a sampling model repeat with the episode.
+        seed = int(self._rng.integers(SEED_HIGH))
+        if callable(getattr(self.controller, "seed", None)):
+            self.controller.seed(seed)
+        actions, self._controller_state = self.controller.predict(
+            observations,
+            state=self._controller_state,
+            episode_start=self._controller_episode_start,
+            deterministic=self.controller_deterministic,
+        )
         self._controller_episode_start[:] = False
         return np.asarray(actions, dtype=np.int32).reshape(self._sizes[side])
 
@@ -382,34 +374,12 @@ def _doubled_squared_gaps(
     return gap_x * gap_x + gap_y * gap_y
 
 
-def load_controller(path: str | os.PathLike, controller_class: type | None = None) -> Any:
-    """Load a saved sb3_hgrn model (on the CPU) to drive one side of :class:`PursuitEnv`.
-
-    :param path: the ``.zip`` written by ``model.save`` (the suffix may be left out, as in SB3).
-    :param controller_class: class whose ``load`` reads it; ``None`` picks ``SoftHGRN`` or ``SACHGRN``
-        from the policy class recorded in the zip.
-    """
-    path = os.fspath(path)
-    if not os.path.exists(path) and os.path.exists(path + ".zip"):
-        path += ".zip"
-    if controller_class is None:
-        with zipfile.ZipFile(path) as archive:
-            policy_module = json.loads(archive.read("data"))["policy_class"].get("__module__", "")
-        package = policy_module.rpartition(".")[0]
-        if package not in MODEL_CLASSES:
-            raise ValueError(
-                f"Cannot tell which algorithm saved {path} (policy module {policy_module!r}); "
-                "pass controller_class."
-            )
-        import sb3_hgrn
-
-        controller_class = getattr(sb3_hgrn, MODEL_CLASSES[package])
-    return controller_class.load(path, device="cpu")
-
-
 def model_paths(env_kwargs: dict[str, Any]) -> dict[str, str]:
-    """The controllers of ``env_kwargs`` given as saved models' paths, by argument name (loading one
-    unpickles it, so it can run code)."""
+    """The controllers of ``env_kwargs`` given as saved models' paths, by argument name.
+
+    :func:`sb3_hgrn.make_graph_vec_env` loads these before it builds the env (the env itself takes
+    only loaded models); loading one unpickles it, so it can run code.
+    """
     paths = {}
     for side in SIDES:
         spec = env_kwargs.get(f"{side}_controller")
@@ -418,26 +388,25 @@ def model_paths(env_kwargs: dict[str, Any]) -> dict[str, str]:
     return paths
 
 
-def _resolve_controller(spec: Any, side: str, controller_class: type | None) -> Any:
-    """A scripted controller's name, or a model (loaded when ``spec`` is a path)."""
+def _resolve_controller(spec: Any, side: str) -> Any:
+    """A scripted controller's name, or a model (an object with ``predict``)."""
     names = SCRIPTED_CONTROLLERS[side]
     if spec is None:
         return DEFAULT_CONTROLLERS[side]
     if isinstance(spec, str) and spec in names:
         return spec
     if isinstance(spec, str | os.PathLike):
-        path = os.fspath(spec)
-        if not (os.path.exists(path) or os.path.exists(path + ".zip")):
-            raise ValueError(
-                f"{side}_controller must be one of {names}, a model or a saved model's path; "
-                f"{spec!r} is none of these."
-            )
-        return load_controller(path, controller_class)
+        raise ValueError(
+            f"{side}_controller must be one of {names} or a model with predict(); {spec!r} is neither. "
+            "The env loads no saved model: pass it loaded (sb3_hgrn.common.controllers.ModelController"
+            "(path)), or build the env with sb3_hgrn.make_graph_vec_env or the command line, which load "
+            "a saved model's path given in env_kwargs."
+        )
     if callable(getattr(spec, "predict", None)):
         return spec
     raise TypeError(
-        f"{side}_controller must be one of {names}, an object with predict() or a saved model's path, "
-        f"got {type(spec).__name__}."
+        f"{side}_controller must be one of {names}, an object with predict() or (through "
+        f"make_graph_vec_env) a saved model's path, got {type(spec).__name__}."
     )
 
 

@@ -11,8 +11,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from sb3_hgrn.common.graph import grid_neighbors
-from sb3_hgrn.common.graph_env import GraphParallelEnv, binary_table
+from sb3_hgrn.envs.base import GraphParallelEnv, binary_table
+from sb3_hgrn.envs.graph import grid_neighbors
 
 N_ACTIONS = 5
 EAT = 4
@@ -68,7 +68,7 @@ class SurvivingEnv(GraphParallelEnv):
     of the index does not depend on ``n_agents``, so a policy transfers between agent counts.
 
     Graph: agents within Chebyshev distance ``comm_range`` (self first, nearest first, ties by lower
-    index, at most ``max_neighbors``), see :func:`sb3_hgrn.common.graph.grid_neighbors`.
+    index, at most ``max_neighbors``), see :func:`sb3_hgrn.envs.graph.grid_neighbors`.
 
     A hand-made map (case study) is built from ``agent_positions`` ``(n_agents, 2)``, ``food_map``
     ``(map_size - 2, map_size - 2)`` (entry ``[i, j]`` is the food on cell ``(i + 1, j + 1)``) and

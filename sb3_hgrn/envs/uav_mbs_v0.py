@@ -11,8 +11,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from sb3_hgrn.common.graph import grid_neighbors
-from sb3_hgrn.common.graph_env import GraphParallelEnv, binary_table
+from sb3_hgrn.envs.base import GraphParallelEnv, binary_table
+from sb3_hgrn.envs.graph import grid_neighbors
 
 # Space and discretisation: positions in [0, 1]^2 map to cells int(p * 200 + 13), clipped to [13, 212],
 # on a 226 x 226 raster whose 13-cell margin is obstacle.
@@ -159,7 +159,7 @@ class UAVMBSEnv(GraphParallelEnv):
     ==================  ==================================================================
 
     Graph: :meth:`neighbors` lists the UAVs within ``comm_range`` (self first, nearest first, ties by
-    lower index), cut to the ``max_neighbors`` nearest, see :func:`sb3_hgrn.common.graph.grid_neighbors`.
+    lower index), cut to the ``max_neighbors`` nearest, see :func:`sb3_hgrn.envs.graph.grid_neighbors`.
 
     ``team_info`` after each step: ``coverage`` = mean over users of (steps so far in which the user
     was covered by any UAV) / (steps so far); ``fairness`` = Jain index ``(sum c)^2 / (n_users * sum

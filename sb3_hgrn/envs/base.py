@@ -15,7 +15,7 @@ import gymnasium as gym
 import numpy as np
 from pettingzoo import ParallelEnv
 
-from sb3_hgrn.common.rendering import PygameWindow
+from sb3_hgrn.envs.rendering import PygameWindow
 
 
 class AgentGroup(NamedTuple):

@@ -17,7 +17,7 @@ from pettingzoo import AECEnv, ParallelEnv
 from pettingzoo.utils import BaseParallelWrapper
 from pettingzoo.utils.conversions import aec_to_parallel
 
-from sb3_hgrn.common.position_graph import PositionGraph
+from sb3_hgrn.envs.position_graph import PositionGraph
 
 
 def as_parallel_env(env: ParallelEnv | AECEnv) -> ParallelEnv:
@@ -67,7 +67,7 @@ class GraphFromPositions(BaseParallelWrapper):
 
     Attributes:
         max_neighbors: width of the neighbour lists, the agent itself included.
-        graph: the :class:`~sb3_hgrn.common.position_graph.PositionGraph` that builds them.
+        graph: the :class:`~sb3_hgrn.envs.position_graph.PositionGraph` that builds them.
     """
 
     def __init__(
