@@ -1,7 +1,7 @@
 """Learning curve of a preset on the paper's Surviving map, as the original code is measured.
 
 Run: python benchmarks/surviving_paper_map.py [--preset soft_hgrn] [--seeds 0 1 2] [--paper]
-     [--param KEY=VALUE ...] [--save PREFIX]
+     [--param KEY=VALUE ...] [--env-param KEY=VALUE ...] [--save PREFIX]
 
 100 agents, 32 x 32 map, 8 resource points, 500-step episodes, one env copy. After every
 ``--eval-every`` env steps (default 5,000, up to ``--env-steps`` 15,000) it prints the team return over
@@ -37,16 +37,18 @@ def main() -> None:
     parser.add_argument("--eval-episodes", type=int, default=4)
     parser.add_argument("--paper", action="store_true", help="the original's network size and schedule")
     parser.add_argument("--param", nargs="*", default=[], help="algorithm arguments, KEY=VALUE")
+    parser.add_argument("--env-param", nargs="*", default=[], help="env arguments, KEY=VALUE")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--save", help="save each seed's final model as SAVE_seed<S>.zip")
     args = parser.parse_args()
     th.set_num_threads(args.threads)
-    n_agents = PAPER_MAP["n_agents"]
+    env_kwargs = {**PAPER_MAP, **parse_assignments(args.env_param)}
+    n_agents = env_kwargs["n_agents"]
     checkpoints = range(args.eval_every, args.env_steps + 1, args.eval_every)
     curves: dict[int, list[tuple[float, float]]] = {step: [] for step in checkpoints}
     for seed in args.seeds:
-        env = make_graph_vec_env("surviving_v0", n_envs=1, seed=seed, env_kwargs=PAPER_MAP)
-        eval_env = make_graph_vec_env("surviving_v0", n_envs=1, seed=seed + 1000, env_kwargs=PAPER_MAP)
+        env = make_graph_vec_env("surviving_v0", n_envs=1, seed=seed, env_kwargs=env_kwargs)
+        eval_env = make_graph_vec_env("surviving_v0", n_envs=1, seed=seed + 1000, env_kwargs=env_kwargs)
         model = make_model(args.preset, env, paper=args.paper, seed=seed, **parse_assignments(args.param))
         trained, train_time = 0, 0.0
         for step in checkpoints:

@@ -91,6 +91,16 @@ def test_observation_layout_on_hand_made_map():
     assert all(env.shared_observation_space.contains(obs) for obs in observations)
 
 
+def test_hidden_position_zeroes_only_the_position_bits():
+    kwargs = dict(agent_positions=[[1, 2], [2, 2], [6, 6]], food_map=food_map_with({(1, 1): 4}))
+    shown = small_env(**kwargs).reset_arrays(seed=0)
+    hidden_env = small_env(observe_position=False, **kwargs)
+    hidden = hidden_env.reset_arrays(seed=0)
+    assert shown[:, :6].any() and not hidden[:, :6].any()
+    np.testing.assert_array_equal(hidden[:, 6:], shown[:, 6:])
+    assert all(hidden_env.shared_observation_space.contains(obs) for obs in hidden)
+
+
 def test_walls_block_moves():
     env = small_env(n_agents=2, agent_positions=[[1, 1], [6, 6]])
     env.reset_arrays(seed=0)

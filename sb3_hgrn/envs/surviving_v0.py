@@ -65,7 +65,9 @@ class SurvivingEnv(GraphParallelEnv):
     ======================  ==========================  ==============================================
 
     Windows are flattened row-major over ``(dx, dy)`` in ``(-1, 0, 1)^2``, ``dx`` slowest. The width
-    of the index does not depend on ``n_agents``, so a policy transfers between agent counts.
+    of the index does not depend on ``n_agents``, so a policy transfers between agent counts. With
+    ``observe_position=False`` the own-position bits are all 0 (the layout stays the same): agents
+    then know only what they see around them, their store and their index.
 
     Graph: agents within Chebyshev distance ``comm_range`` (self first, nearest first, ties by lower
     index, at most ``max_neighbors``), see :func:`sb3_hgrn.envs.graph.grid_neighbors`.
@@ -91,6 +93,7 @@ class SurvivingEnv(GraphParallelEnv):
         comm_range: int = 3,
         max_neighbors: int = 16,
         id_bits: int = 10,
+        observe_position: bool = True,
         render_mode: str | None = None,
         agent_positions: np.ndarray | None = None,
         food_map: np.ndarray | None = None,
@@ -106,6 +109,7 @@ class SurvivingEnv(GraphParallelEnv):
         self.comm_range = comm_range
         self.max_neighbors = max_neighbors
         self.id_bits = id_bits
+        self.observe_position = observe_position
         self.render_mode = render_mode
         self.regrowth_threshold = 2 * n_agents + 4
         self.possible_agents = [f"agent_{i}" for i in range(n_agents)]
@@ -329,6 +333,8 @@ class SurvivingEnv(GraphParallelEnv):
         gathered = self._layers.reshape(-1)[self._agent_cells[:, None] + self._layer_offsets[None, :]]
         observations[:, : self._layer_offsets.size] = gathered
         observations[:, -1] = self._stores
+        if not self.observe_position:
+            observations[:, : self._map_window_slice.start] = 0
         return observations
 
     # --- placement helpers ----------------------------------------------------------------------
