@@ -67,7 +67,8 @@ class DrivenSide(abc.ABC):
 
     @abc.abstractmethod
     def observations(self) -> np.ndarray:
-        """``(n_slots, *obs_shape)``: every slot's observation, a gone agent's the last it had."""
+        """``(n_slots, *obs_shape)``: every slot's observation; a gone agent's slot keeps the last one
+        read here while it lived."""
 
     @abc.abstractmethod
     def named_observations(self) -> dict[str, Any]:
@@ -155,14 +156,14 @@ class ModelDriver(Controller):
     """A model with SB3's ``predict`` driving every slot of a side as one graph.
 
     At every step the model gets ``{"obs": (n_slots, *obs_shape), "neighbors": (n_slots, K) int32}``
-    for all slots (a gone agent keeps its slot with its last observation and an all ``-1`` list, and no
-    list names it; its action is dropped) and returns ``(actions (n_slots,), state)``. Its recurrent
-    ``state`` is carried through the episode and reset by :meth:`reset`. ``K`` is the width of the
-    model's ``observation_space["neighbors"]`` where it has a Dict observation space, else the side's.
-    Two methods of the model are optional: ``bind(observation_space, n_agents)``, called here once
-    with the side's shared observation space and slot count, and ``seed(seed)``, called with an int
-    from the env's generator before every ``predict``, so that a sampling model repeats with the
-    env's seed.
+    for all slots (a gone agent keeps its slot, with the last observation the model had of it and an
+    all ``-1`` list, and no list names it; its action is dropped) and returns ``(actions (n_slots,),
+    state)``. Its recurrent ``state`` is carried through the episode and reset by :meth:`reset`. ``K``
+    is the width of the model's ``observation_space["neighbors"]`` where it has a Dict observation
+    space, else the side's. Two methods of the model are optional: ``bind(observation_space,
+    n_agents)``, called here once with the side's shared observation space and slot count, and
+    ``seed(seed)``, called with an int from the env's generator before every ``predict``, so that a
+    sampling model repeats with the env's seed.
 
     :raises ValueError: when the slots do not share one ``Box`` observation space or the side has
         no graph.

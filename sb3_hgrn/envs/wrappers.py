@@ -140,11 +140,11 @@ class DrivenAgents(ParallelEnv):
       model, or of a saved one's path, loaded on the learner side: this env loads no file). The
       driven agents form one graph, in the fixed slots of :attr:`driven_agents`: the model gets
       ``{"obs": (n_driven, *obs_shape), "neighbors": (n_driven, K) int32}``. A gone agent keeps its
-      slot, with its last observation and an all ``-1`` list, no list names it, and its action is
-      dropped. The model's recurrent state is carried through the episode and reset at every
+      slot, with the last observation the model had of it and an all ``-1`` list, no list names it,
+      and its action is dropped. The model's recurrent state is carried through the episode and reset at every
       ``reset``; its ``bind(observation_space, n_driven)`` is called once here and its
       ``seed(int)`` before every ``predict`` with a seed from this env's generator, where it has
-      them. The driven agents must share one observation space.
+      them. The driven agents must share one ``Box`` observation space.
 
     The model's neighbour lists come from ``controller_neighbors(env, names) -> (n, K)`` when it is
     given (``env`` the inner env, ``names`` the ``n`` living driven agents; row ``j`` lists
@@ -188,7 +188,7 @@ class DrivenAgents(ParallelEnv):
     Raises:
         ValueError: ``learners`` names an agent the env does not have, or selects no agent or all
             of them; a string ``controller`` other than ``"random"``; a model controller without
-            neighbour lists or over driven agents of different observation spaces.
+            neighbour lists or over driven agents without one shared ``Box`` observation space.
         TypeError: a ``learners`` or ``controller`` of another kind, or ``"random"`` over a
             non-``Discrete`` action space.
     """
