@@ -13,6 +13,7 @@ __version__ = "0.1.0"
 
 _MODULES = {
     "AgentViewCNN": "sb3_hgrn.common.torch_layers",
+    "DrivenAgents": "sb3_hgrn.envs.wrappers",
     "GraphEvalCallback": "sb3_hgrn.common.evaluation",
     "GraphFromPositions": "sb3_hgrn.envs.wrappers",
     "GraphVecEnv": "sb3_hgrn.common.vec_env",
@@ -26,6 +27,7 @@ _MODULES = {
 
 __all__ = [
     "AgentViewCNN",
+    "DrivenAgents",
     "GraphEvalCallback",
     "GraphFromPositions",
     "GraphVecEnv",

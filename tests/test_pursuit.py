@@ -276,6 +276,27 @@ def test_model_controller_threads_state_and_is_reproducible(tmp_path):
         pursuit_v0.parallel_env(map_size=16, learners="prey", predator_controller=ModelController(model))
 
 
+def test_a_function_drives_the_prey_and_bad_actions_are_refused():
+    calls = []
+
+    def step_right(observations, env):
+        calls.append((sorted(observations), {obs.shape for obs in observations.values()}, env))
+        return dict.fromkeys(observations, 5)  # x + 1
+
+    env = small_env(prey_controller=step_right)
+    env.reset_arrays(seed=0)
+    before = env.prey_cells().copy()
+    env.step_arrays(np.full(env.n_agents, STAY["predator"]))
+    assert calls == [(sorted(f"prey_{i}" for i in range(6)), {(405,)}, env)]
+    assert (
+        set(map(tuple, env.prey_cells() - before)) <= {(0, 0), (1, 0)} and (env.prey_cells() != before).any()
+    )
+    with pytest.raises(ValueError, match=r"prey_controller must give 6 integer actions in 0..8"):
+        env = small_env(prey_controller=lambda observations, env: dict.fromkeys(observations, 9))
+        env.reset_arrays(seed=0)
+        env.step_arrays(np.full(env.n_agents, STAY["predator"]))
+
+
 def prey_cells_of_a_vec_env_episode(vec_env, n_steps: int = 4) -> np.ndarray:
     """Prey cells of copy 0 after each of ``n_steps`` vec-steps in which every predator stays."""
     vec_env.reset()

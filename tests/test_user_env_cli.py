@@ -7,7 +7,9 @@ from pathlib import Path
 import pytest
 import yaml
 
+from sb3_hgrn import make_graph_vec_env
 from sb3_hgrn.cli import main
+from sb3_hgrn.common.controllers import ModelController
 from sb3_hgrn.experiments.config import (
     REQUIRED_BUDGET_FIELDS,
     ConfigError,
@@ -17,6 +19,7 @@ from sb3_hgrn.experiments.config import (
 )
 from sb3_hgrn.experiments.runs import make_env
 from sb3_hgrn.experiments.sweep import SweepSettings, check_points, grid_points, plan_sweep
+from tests.user_env_pkg import make_driven_env
 
 SPEC = "tests.user_env_pkg:make_env"
 FOLDER_NAME = "tests.user_env_pkg-make_env"
@@ -168,3 +171,38 @@ def test_a_study_of_a_user_env_is_named_as_its_run_folders(config_file):
     assert "config" not in tune.TuneSetup("surviving_v0", "soft_hgrn", "ci", 0, {}).describe()
     with pytest.raises(ConfigError, match="--config FILE"):
         tune.TuneSetup(SPEC, "soft_hgrn", "ci", 0, {})
+
+
+DRIVEN_SPEC = "tests.user_env_pkg:make_driven_env"
+DRIVEN_FOLDER = "tests.user_env_pkg-make_driven_env"
+
+
+def train_driven(config_file: Path, root: Path, seed: int, *extra: str) -> Path:
+    """Train a run of the user env whose other half a controller drives; its folder."""
+    args = ["train", "--env", DRIVEN_SPEC, "--config", str(config_file), "--preset", "soft_hgrn"]
+    assert main([*args, "--folder", str(root), "--seed", str(seed), *TOY, *extra]) == 0
+    return root / DRIVEN_FOLDER / "soft_hgrn" / f"seed_{seed}"
+
+
+def test_a_saved_model_given_by_path_drives_the_other_agents_of_a_user_env(tmp_path, capsys):
+    config_file = tmp_path / "driven.yml"
+    config = {**CONFIG, "budgets": {"ci": {**CONFIG["budgets"]["ci"], "env_kwargs": {"max_cycles": 5}}}}
+    config_file.write_text(yaml.safe_dump(config))
+    first = train_driven(config_file, tmp_path / "runs", 0)
+    model_path = str(first / "model.zip")
+
+    # make_graph_vec_env loads the path the module's model_paths names, once for all copies
+    vec_env = make_graph_vec_env(make_driven_env, n_envs=2, env_kwargs={"controller": model_path})
+    controllers = [env.env.controller for env in vec_env.envs]
+    assert isinstance(controllers[0], ModelController) and controllers[0] is controllers[1]
+    assert controllers[0].model.policy.n_agents == 3 and vec_env.num_envs == 6
+    with pytest.raises(ValueError, match="loads no saved model"):
+        make_driven_env(controller=model_path)  # the env side loads nothing
+
+    # the command line trains against it, and a run whose config names it outside its folder
+    second = train_driven(config_file, tmp_path / "runs", 1, "--env-param", f"controller={model_path}")
+    assert yaml.safe_load((second / "config.yml").read_text())["env_kwargs"]["controller"] == model_path
+    message = exit_message(capsys, ["evaluate", str(second), "--env", DRIVEN_SPEC, "--episodes", "1"])
+    assert f"sets controller='{model_path}', a model outside the run folder" in message
+    given = ["--env-param", f"controller={model_path}", "--episodes", "1", "--threads", "1"]
+    assert main(["evaluate", str(second), "--env", DRIVEN_SPEC, *given]) == 0

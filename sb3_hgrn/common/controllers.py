@@ -1,9 +1,10 @@
-"""sb3_hgrn models that drive the scripted side of an env, such as Pursuit's prey or predators.
+"""sb3_hgrn models that drive the agents of an env that do not learn, such as Pursuit's prey or
+predators or the other team of :class:`~sb3_hgrn.envs.wrappers.DrivenAgents`.
 
 The envs of :mod:`sb3_hgrn.envs` import no torch and load no model: they take any object with SB3's
 ``predict``. :class:`ModelController` is the one to hand them: it loads a saved model, fits a graph
 policy to the agents it drives and seeds the model's sampling from the env, so that a seeded episode
-repeats exactly. :func:`resolve_model_paths` turns the saved models' paths of a registered env's
+repeats exactly. :func:`resolve_model_paths` turns the saved models' paths of an env's
 ``env_kwargs`` into such controllers; :func:`sb3_hgrn.make_graph_vec_env` calls it.
 """
 
@@ -133,8 +134,9 @@ def resolve_model_paths(env_fn: Callable[..., Any], env_kwargs: dict[str, Any]) 
     """``env_kwargs`` with every saved model's path its env names loaded as a :class:`ModelController`.
 
     Which arguments name saved models the module defining ``env_fn`` says with
-    ``model_paths(env_kwargs) -> {argument: path}`` (as :mod:`sb3_hgrn.envs.pursuit_v0` does); for
-    other envs ``env_kwargs`` is returned as it is. Loading a model unpickles it, so it can run code.
+    ``model_paths(env_kwargs) -> {argument: path}`` (as :mod:`sb3_hgrn.envs.pursuit_v0` does, and a
+    module of one's own can with :func:`sb3_hgrn.envs.controllers.controller_paths`); for other envs
+    ``env_kwargs`` is returned as it is. Loading a model unpickles it, so it can run code.
 
     :raises ValueError: naming the argument whose path holds no saved model.
     """

@@ -36,6 +36,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvO
 from sb3_hgrn.common.checks import observation_problem, slot_name
 from sb3_hgrn.common.controllers import resolve_model_paths
 from sb3_hgrn.envs.base import GraphParallelEnv
+from sb3_hgrn.envs.graph import living_neighbors
 from sb3_hgrn.envs.wrappers import as_parallel_env
 
 REGISTERED_ENVS = ("surviving_v0", "uav_mbs_v0", "pursuit_v0", "ctc_v0")
@@ -155,15 +156,6 @@ class ParallelEnvAdapter(GraphParallelEnv):
 
     def close(self) -> None:
         self.env.close()
-
-
-def living_neighbors(graph: np.ndarray, alive: np.ndarray) -> np.ndarray:
-    """Neighbour lists ``(n_agents, max_neighbors)`` int32 of the living agents only: every entry
-    naming a gone agent becomes ``-1`` and a gone agent's own list is all ``-1``, so it sends and
-    receives no messages. ``graph``: valid lists in ``[-1, n_agents - 1]``; ``alive``: ``(n_agents,)``
-    bool."""
-    listed = np.append(alive, False)[graph]  # entry -1 reads the appended False
-    return np.where(listed & alive[:, None], graph, -1).astype(np.int32)
 
 
 def _check_groups(env: GraphParallelEnv) -> None:
@@ -393,8 +385,8 @@ class GraphVecEnv(VecEnv):
         self, copy: int, env: GraphParallelEnv, obs: np.ndarray, members: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """One copy's checked observations and the neighbour lists of its graph's ``members``
-        ``(n_agents,)`` bool (see :func:`living_neighbors`); without members the env's graph is not
-        asked for."""
+        ``(n_agents,)`` bool (see :func:`~sb3_hgrn.envs.graph.living_neighbors`); without members the
+        env's graph is not asked for."""
         if not members.any():
             graph = np.full((self.n_agents, self.max_neighbors), -1, dtype=np.int32)
             return self._checked(copy, obs, graph)

@@ -8,6 +8,9 @@ index), padded with ``-1``.
 Ordering: every pair gets an integer *rank*: 0 for the agent itself, ``1 + distance key`` for an agent
 in range (the key is ``max(|dx|, |dy|)`` for Chebyshev, ``dx**2 + dy**2`` for Euclidean distance, both
 exact on integer cells), and rows are sorted by ``(rank, index)``.
+
+:func:`living_neighbors` and :func:`subgraph` cut such lists down to the living agents or to a subset
+of the agents.
 """
 
 from __future__ import annotations
@@ -71,6 +74,32 @@ def grid_neighbors(
     if len(cells) <= DENSE_MAX_AGENTS and _fits_int16_keys(len(cells), span, max_key, metric):
         return _dense_neighbors(cells, lowest, max_key, max_neighbors, metric)
     return _blocked_neighbors(cells.astype(np.int64), max_key, max_neighbors, metric)
+
+
+def living_neighbors(graph: np.ndarray, alive: np.ndarray) -> np.ndarray:
+    """Neighbour lists ``(n_agents, max_neighbors)`` int32 of the living agents only: every entry
+    naming a gone agent becomes ``-1`` and a gone agent's own list is all ``-1``, so it sends and
+    receives no messages. ``graph``: valid lists in ``[-1, n_agents - 1]``; ``alive``: ``(n_agents,)``
+    bool."""
+    listed = np.append(alive, False)[graph]  # entry -1 reads the appended False
+    return np.where(listed & alive[:, None], graph, -1).astype(np.int32)
+
+
+def subgraph(graph: np.ndarray, members: np.ndarray) -> np.ndarray:
+    """The neighbour lists of the agents ``members`` among themselves.
+
+    Args:
+        graph: ``(n_agents, max_neighbors)`` valid lists in ``[-1, n_agents - 1]``.
+        members: ``(n_members,)`` distinct agent indices.
+
+    Returns:
+        ``(n_members, max_neighbors)`` int64: row ``j`` is the list of agent ``members[j]`` with every
+        entry renumbered to its position in ``members`` and entries naming other agents ``-1`` (in
+        place: the ``-1`` may stand between neighbours, as a list is a set).
+    """
+    position = np.full(len(graph) + 1, -1, dtype=np.int64)  # entry -1 reads the last one, -1
+    position[members] = np.arange(len(members))
+    return position[graph[members]]
 
 
 def _distance_keys(dx: np.ndarray, dy: np.ndarray, max_key: int, metric: str) -> np.ndarray:

@@ -6,13 +6,13 @@ Needs MAgent2 (``pip install magent2==0.3.4``).
 
 from __future__ import annotations
 
-import os
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
 from sb3_hgrn.envs.base import GraphParallelEnv
+from sb3_hgrn.envs.controllers import Controller, DrivenSide, controller_paths, make_controller
 from sb3_hgrn.envs.graph import grid_neighbors
 
 SIDES = ("predator", "prey")
@@ -57,21 +57,24 @@ class PursuitEnv(GraphParallelEnv):
     first, ties by lower index, at most ``max_neighbors``), see
     :func:`sb3_hgrn.envs.graph.grid_neighbors`.
 
-    Controllers of the other side: ``"random"`` (uniform actions), for prey ``"evader"``
-    (:func:`evader_actions`), or a model: any object with SB3's ``predict(observation, state=...,
-    episode_start=..., deterministic=...)``, called with ``{"obs": (n, obs_dim) uint8, "neighbors":
-    (n, K) int32}`` for the ``n`` controlled agents and returning ``(actions (n,), state)``. The
-    graph is the controlled side's own (``comm_range``), ``K`` wide: the width of
-    ``observation_space["neighbors"]`` where the model has a Dict observation space, else
-    ``max_neighbors``. Its recurrent state is threaded through the episode and reset at episode
-    starts; it acts with ``controller_deterministic``. Two methods are optional:
-    ``bind(observation_space, n_agents)``, called once here with the controlled side's observation
-    ``Box`` and agent count (to check that the model fits that side and size it to it), and
-    ``seed(seed)``, called with an int from the env's generator before every ``predict``. The env
+    Controllers of the other side, built by :func:`sb3_hgrn.envs.controllers.make_controller` (as
+    for :class:`~sb3_hgrn.envs.wrappers.DrivenAgents`): ``"random"`` (uniform actions), for prey
+    ``"evader"`` (:func:`evader_actions`), a function ``(observations, env) -> actions`` (the
+    controlled agents ``prey_0``, ... or ``predator_0``, ... by name, and this env), or a model: any
+    object with SB3's ``predict(observation, state=..., episode_start=..., deterministic=...)``,
+    called with ``{"obs": (n, obs_dim) uint8, "neighbors": (n, K) int32}`` for the ``n`` controlled
+    agents and returning ``(actions (n,), state)``. The graph is the controlled side's own
+    (``comm_range``), ``K`` wide: the width of ``observation_space["neighbors"]`` where the model has
+    a Dict observation space, else ``max_neighbors``. Its recurrent state is threaded through the
+    episode and reset at episode starts; it acts with ``controller_deterministic``. Two methods are
+    optional: ``bind(observation_space, n_agents)``, called once here with the controlled side's
+    observation ``Box`` and agent count (to check that the model fits that side and size it to it),
+    and ``seed(seed)``, called with an int from the env's generator before every ``predict``. The env
     loads no saved model: ``sb3_hgrn.common.controllers.ModelController`` wraps a loaded sb3_hgrn
     model or a saved one's path and has both methods (its samples repeat with the env's seed), and
     :func:`sb3_hgrn.make_graph_vec_env` and the command line turn a path given in ``env_kwargs``
-    into one (see :func:`model_paths`).
+    into one (see :func:`model_paths`). :attr:`controller` is the controller as given (its name where
+    it was left ``None``).
 
     Seeding: one numpy generator, reseeded by ``reset(seed=...)`` (first reset without a seed: from
     entropy; later unseeded resets continue it), seeds MAgent's engine at every reset (map, walls,
@@ -155,32 +158,22 @@ class PursuitEnv(GraphParallelEnv):
         controllers = {"predator": predator_controller, "prey": prey_controller}
         if controllers[learners] is not None:
             raise ValueError(f"{learners}_controller must be None when the {learners} side learns.")
-        self.controller = _resolve_controller(controllers[self.opponents], self.opponents)
-        self._controller_kind = self.controller if isinstance(self.controller, str) else "model"
-        self._controller_width = self._bind_model_controller()
-
+        spec = controllers[self.opponents]
+        self.controller = DEFAULT_CONTROLLERS[self.opponents] if spec is None else spec
         self._rng: np.random.Generator | None = None
         self._walls = np.zeros((map_size, map_size), dtype=bool)
-        self._controller_state: Any = None
-        self._controller_episode_start = np.ones(self._sizes[self.opponents], dtype=bool)
+        self._side = PursuitSide(self)
+        self._driver = make_controller(
+            self.controller,
+            self._side,
+            argument=f"{self.opponents}_controller",
+            deterministic=controller_deterministic,
+            scripted={"evader": EvaderController} if self.opponents == "prey" else None,
+        )
         self._steps = 0
         self._episode_tags = 0
         self._episode_running = False
         self._cell_cache: dict[str, np.ndarray] = {}
-
-    def _bind_model_controller(self) -> int:
-        """Hand a model controller the controlled side (its ``bind``, where it has one); returns the
-        width of the neighbour lists it takes."""
-        if self._controller_kind != "model":
-            return self.max_neighbors
-        side = self.opponents
-        bind = getattr(self.controller, "bind", None)
-        if callable(bind):
-            bind(gym.spaces.Box(0, 1, (self._obs_dims[side],), dtype=np.uint8), self._sizes[side])
-        space = getattr(self.controller, "observation_space", None)
-        if isinstance(space, gym.spaces.Dict) and "neighbors" in space.spaces:
-            return int(space["neighbors"].shape[0])
-        return self.max_neighbors
 
     # --- array API ------------------------------------------------------------------------------
     def reset_arrays(self, seed: int | None = None, options: dict | None = None) -> np.ndarray:
@@ -197,12 +190,10 @@ class PursuitEnv(GraphParallelEnv):
         sizes = {side: self._grid.get_num(handle) for side, handle in self._handles.items()}
         if sizes != self._sizes:
             raise RuntimeError(f"MAgent2 placed {sizes} agents instead of {self._sizes}.")
-        if self._controller_kind == "evader":
-            walls = self._grid._get_walls_info()
-            self._walls[:] = False
-            self._walls[walls[:, 0], walls[:, 1]] = True
-        self._controller_state = None
-        self._controller_episode_start[:] = True
+        walls = self._grid._get_walls_info()
+        self._walls[:] = False
+        self._walls[walls[:, 0], walls[:, 1]] = True
+        self._driver.reset()
         self._steps = 0
         self._episode_tags = 0
         self._episode_running = True
@@ -301,26 +292,24 @@ class PursuitEnv(GraphParallelEnv):
         return views.reshape(len(views), -1).astype(np.uint8)
 
     def _controller_actions(self) -> np.ndarray:
-        """Actions ``(n_controlled,)`` int32 of the controlled side in the current state."""
+        """Actions ``(n_controlled,)`` int32 of the controlled side in the current state.
+
+        :raises ValueError: when the controller gives other than one valid action per agent.
+        """
         side = self.opponents
-        if self._controller_kind == "random":
-            return self._rng.integers(0, self._n_actions[side], size=self._sizes[side], dtype=np.int32)
-        if self._controller_kind == "evader":
-            return evader_actions(self.prey_cells(), self.predator_cells(), self._walls).astype(np.int32)
-        graph = grid_neighbors(self._cells(side), self.comm_range, self._controller_width, "euclidean")
-        observations = {"obs": self._observe(side), "neighbors": graph.astype(np.int32)}
-        # A seed per step from the env's generator makes a sampling model repeat with the episode.
-        seed = int(self._rng.integers(SEED_HIGH))
-        if callable(getattr(self.controller, "seed", None)):
-            self.controller.seed(seed)
-        actions, self._controller_state = self.controller.predict(
-            observations,
-            state=self._controller_state,
-            episode_start=self._controller_episode_start,
-            deterministic=self.controller_deterministic,
-        )
-        self._controller_episode_start[:] = False
-        return np.asarray(actions, dtype=np.int32).reshape(self._sizes[side])
+        actions = np.asarray(self._driver.actions(self._side))
+        n, n_actions = self._sizes[side], self._n_actions[side]
+        if (
+            actions.shape != (n,)
+            or actions.dtype.kind not in "iu"
+            or actions.min() < 0
+            or actions.max() >= n_actions
+        ):
+            raise ValueError(
+                f"The {side}_controller must give {n} integer actions in 0..{n_actions - 1} (one per "
+                f"{side}), got {actions.dtype} {actions.shape}."
+            )
+        return actions.astype(np.int32, copy=False)
 
     # --- rendering ------------------------------------------------------------------------------
     def render(self) -> np.ndarray | None:
@@ -334,6 +323,47 @@ class PursuitEnv(GraphParallelEnv):
     def close(self) -> None:
         """Close MAgent2's renderer if one was opened."""
         self._magent.close()
+
+
+class PursuitSide(DrivenSide):
+    """The side of a :class:`PursuitEnv` that its controller drives: all its agents, always alive,
+    named ``prey_0``, ... or ``predator_0``, ..., with their graph of ``comm_range``."""
+
+    def __init__(self, env: PursuitEnv) -> None:
+        side = env.opponents
+        self.env = env
+        self.names = tuple(f"{side}_{i}" for i in range(env._sizes[side]))
+        self.action_spaces = (gym.spaces.Discrete(env._n_actions[side]),) * len(self.names)
+        self.observation_space = gym.spaces.Box(0, 1, (env._obs_dims[side],), dtype=np.uint8)
+        self._side = side
+        self._all = np.arange(len(self.names))
+
+    @property
+    def rng(self) -> np.random.Generator:
+        return self.env._rng
+
+    def living(self) -> np.ndarray:
+        return self._all
+
+    def observations(self) -> np.ndarray:
+        """``(n, obs_dim)`` uint8."""
+        return self.env._observe(self._side)
+
+    def named_observations(self) -> dict[str, np.ndarray]:
+        return dict(zip(self.names, self.observations(), strict=True))
+
+    def neighbors(self, width: int | None) -> np.ndarray:
+        env = self.env
+        width = env.max_neighbors if width is None else width
+        return grid_neighbors(env._cells(self._side), env.comm_range, width, "euclidean").astype(np.int32)
+
+
+class EvaderController(Controller):
+    """Pursuit's scripted prey (:func:`evader_actions`)."""
+
+    def actions(self, side: PursuitSide) -> np.ndarray:
+        env = side.env
+        return evader_actions(env.prey_cells(), env.predator_cells(), env._walls)
 
 
 def evader_actions(prey_cells: np.ndarray, predator_cells: np.ndarray, walls: np.ndarray) -> np.ndarray:
@@ -380,34 +410,7 @@ def model_paths(env_kwargs: dict[str, Any]) -> dict[str, str]:
     :func:`sb3_hgrn.make_graph_vec_env` loads these before it builds the env (the env itself takes
     only loaded models); loading one unpickles it, so it can run code.
     """
-    paths = {}
-    for side in SIDES:
-        spec = env_kwargs.get(f"{side}_controller")
-        if isinstance(spec, str | os.PathLike) and spec not in SCRIPTED_CONTROLLERS[side]:
-            paths[f"{side}_controller"] = os.fspath(spec)
-    return paths
-
-
-def _resolve_controller(spec: Any, side: str) -> Any:
-    """A scripted controller's name, or a model (an object with ``predict``)."""
-    names = SCRIPTED_CONTROLLERS[side]
-    if spec is None:
-        return DEFAULT_CONTROLLERS[side]
-    if isinstance(spec, str) and spec in names:
-        return spec
-    if isinstance(spec, str | os.PathLike):
-        raise ValueError(
-            f"{side}_controller must be one of {names} or a model with predict(); {spec!r} is neither. "
-            "The env loads no saved model: pass it loaded (sb3_hgrn.common.controllers.ModelController"
-            "(path)), or build the env with sb3_hgrn.make_graph_vec_env or the command line, which load "
-            "a saved model's path given in env_kwargs."
-        )
-    if callable(getattr(spec, "predict", None)):
-        return spec
-    raise TypeError(
-        f"{side}_controller must be one of {names}, an object with predict() or (through "
-        f"make_graph_vec_env) a saved model's path, got {type(spec).__name__}."
-    )
+    return controller_paths(env_kwargs, {f"{side}_controller": SCRIPTED_CONTROLLERS[side] for side in SIDES})
 
 
 def _check_arguments(

@@ -23,6 +23,7 @@ moves an old run to ``<folder>.replaced-<UTC time>/`` until the new run has fini
 from __future__ import annotations
 
 import importlib
+import inspect
 import itertools
 import json
 import os
@@ -674,11 +675,16 @@ def check_stored_model_paths(
     Loading a model zip unpickles it and so can run code: a run's ``config.yml`` may only point to
     models inside its own folder, unless ``trust_config``. Env arguments in ``given`` (passed by the
     user, over the stored ones) are not checked. Which env arguments name models the env module says
-    with ``model_paths(env_kwargs) -> {argument: path}`` (registered envs only).
+    with ``model_paths(env_kwargs) -> {argument: path}`` (a registered env's module, or the module that
+    defines a user env ``MODULE:ATTR``, imported here: call this after :func:`check_stored_env`).
     """
-    if trust_config or is_env_spec(config.env):
+    if trust_config:
         return
-    model_paths = getattr(importlib.import_module(f"sb3_hgrn.envs.{config.env}"), "model_paths", None)
+    if is_env_spec(config.env):
+        env_module = inspect.getmodule(load_env_factory(config.env))
+    else:
+        env_module = importlib.import_module(f"sb3_hgrn.envs.{config.env}")
+    model_paths = getattr(env_module, "model_paths", None)
     if model_paths is None:
         return
     inside = folder.resolve()
