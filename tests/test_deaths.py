@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import csv
+
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
 from pettingzoo import ParallelEnv
+from stable_baselines3.common.logger import configure
 
 from sb3_hgrn import SACHGRN, SoftHGRN, evaluate_graph_policy
 from sb3_hgrn.common.vec_env import GraphVecEnv, ParallelEnvAdapter
@@ -131,6 +134,26 @@ def test_team_return_counts_each_agent_while_it_lives():
     # a0 lives steps 1-2, a2 steps 1-4, a1 and a3 all 6
     assert infos[0]["team_episode"]["r"] == 2 + 4 + 6 + 6
     np.testing.assert_array_equal(np.stack(rewards)[:, 0], [1, 1, 0, 0, 0, 0])
+
+
+class AbsentEnv(DyingEnv):
+    """:class:`DyingEnv` whose last agent never takes part: it is not among the agents at reset."""
+
+    def reset(self, seed=None, options=None):
+        observations, infos = super().reset(seed, options)
+        self.agents = self.possible_agents[:-1]
+        return {a: observations[a] for a in self.agents}, infos
+
+
+def test_per_agent_return_counts_only_the_agents_that_lived(tmp_path):
+    env = GraphVecEnv([lambda: AbsentEnv((2, None, 4, None), max_cycles=6)])
+    model = SoftHGRN("GraphPolicy", env, learning_starts=0, buffer_size=1000, seed=0)
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn(env.num_envs * 12, log_interval=1)
+    rows = list(csv.DictReader((tmp_path / "progress.csv").open()))
+    # a0 lives steps 1-2, a1 all 6, a2 steps 1-4; a3 never: 12 over 3 agents
+    assert [float(row["rollout/ep_team_rew_mean"]) for row in rows] == [12.0, 12.0]
+    assert [float(row["rollout/ep_rew_mean"]) for row in rows] == [4.0, 4.0]
 
 
 def test_evaluation_counts_each_agent_while_it_lives():

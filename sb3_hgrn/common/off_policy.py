@@ -586,7 +586,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
             self._on_step()
             for first_slot in np.flatnonzero(dones[:: self.n_agents]) * self.n_agents:
                 team = infos[first_slot]["team_episode"]
-                self._team_episodes.append({"r": team["r"], "l": team["l"]})
+                self._team_episodes.append({"r": team["r"], "l": team["l"], "agents": team["agents"]})
                 self._episode_num += 1
                 n_episodes += 1
                 if log_interval is not None and self._episode_num % log_interval == 0:
@@ -619,7 +619,13 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         if self._team_episodes:
             team_returns = [episode["r"] for episode in self._team_episodes]
             self.logger.record("rollout/ep_team_rew_mean", safe_mean(team_returns))
-            self.logger.record("rollout/ep_rew_mean", safe_mean(team_returns) / self.n_agents)
+            # per agent: each episode's team return over the agents that lived in it
+            self.logger.record(
+                "rollout/ep_rew_mean",
+                safe_mean(
+                    [episode["r"] / episode.get("agents", self.n_agents) for episode in self._team_episodes]
+                ),
+            )
             self.logger.record(
                 "rollout/ep_len_mean", safe_mean([episode["l"] for episode in self._team_episodes])
             )

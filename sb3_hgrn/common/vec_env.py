@@ -275,6 +275,7 @@ class GraphVecEnv(VecEnv):
         self._team_returns = np.zeros(self.n_copies, dtype=np.float64)
         self._episode_lengths = np.zeros(self.n_copies, dtype=np.int64)
         self._alive = np.ones((self.n_copies, self.n_agents), dtype=bool)
+        self._took_part = np.ones((self.n_copies, self.n_agents), dtype=bool)
         self._terminations = np.zeros((self.n_copies, self.n_agents), dtype=bool)
 
     @property
@@ -327,6 +328,7 @@ class GraphVecEnv(VecEnv):
             terminated, truncated = terminated & acting, truncated & acting
             self._terminations[copy] = terminated
             self._alive[copy] = acting & ~(terminated | truncated) & env.alive
+            self._took_part[copy] |= acting
             self._team_returns[copy] += float(reward.sum())
             self._episode_lengths[copy] += 1
             ended = not self._alive[copy].any()
@@ -351,8 +353,9 @@ class GraphVecEnv(VecEnv):
         """Fill the infos of every slot of ``copy`` at the end of its episode and zero its counters.
 
         Each slot gets SB3's ``terminal_observation`` and ``TimeLimit.truncated``; all slots share
-        one ``team_episode`` dict with the team return ``r``, the length ``l``, the env's team
-        figures, and the whole graph's ``final_observation`` and ``terminated`` arrays.
+        one ``team_episode`` dict with the team return ``r``, the length ``l``, the number of agents
+        that were alive at some step of the episode ``agents``, the env's team figures, and the whole
+        graph's ``final_observation`` and ``terminated`` arrays.
         """
         slots = slice(copy * self.n_agents, (copy + 1) * self.n_agents)
         final = {"obs": obs, "neighbors": graph}
@@ -360,6 +363,7 @@ class GraphVecEnv(VecEnv):
         team_episode = {
             "r": float(self._team_returns[copy]),
             "l": int(self._episode_lengths[copy]),
+            "agents": int(self._took_part[copy].sum()),
             **team_info,
             "final_observation": final,
             "terminated": terminated,
@@ -377,6 +381,7 @@ class GraphVecEnv(VecEnv):
     def _started(self, copy: int, env: GraphParallelEnv, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`_observed` for the first observations of an episode, which must have a living agent."""
         self._alive[copy] = env.alive
+        self._took_part[copy] = self._alive[copy]
         if not self._alive[copy].any():
             raise ValueError(f"Env copy {copy} ({type(env).__name__}) has no agents after its reset.")
         return self._observed(copy, env, obs, self._alive[copy])
@@ -444,6 +449,7 @@ class GraphVecEnv(VecEnv):
             "team_returns": self._team_returns,
             "episode_lengths": self._episode_lengths,
             "alive": self._alive,
+            "took_part": self._took_part,
             "terminations": self._terminations,
             "seeds_per_copy": self._seeds_per_copy,
             "options": self._options,
@@ -474,6 +480,7 @@ class GraphVecEnv(VecEnv):
         self._episode_lengths = loaded["episode_lengths"]
         # states of VecEnvs whose agents could not die have every agent alive
         self._alive = loaded.get("alive", np.ones((self.n_copies, self.n_agents), dtype=bool))
+        self._took_part = loaded.get("took_part", np.ones((self.n_copies, self.n_agents), dtype=bool))
         self._terminations = loaded.get("terminations", np.zeros((self.n_copies, self.n_agents), dtype=bool))
         self._seeds_per_copy = loaded["seeds_per_copy"]
         self._options = loaded["options"]
