@@ -72,6 +72,10 @@ DISTRIBUTION_KEYS = {
     "categorical": ({"choices"}, set()),
 }
 """Distribution type -> (required keys, optional keys) besides ``type``."""
+OPEN_ATTEMPTS = 5
+"""Tries at opening a storage whose tables another worker is creating at the same moment."""
+OPEN_RETRY_PAUSE = 0.5
+"""Seconds before the second try at opening a storage; the n-th waits n times as long."""
 SETUP_ATTR = "sb3_hgrn_setup"
 """Study user attribute holding :meth:`TuneSetup.describe`: a worker joins only a study of its setup."""
 
@@ -420,16 +424,48 @@ def hide_password(url: str) -> str:
 
 def open_storage(url: str) -> optuna.storages.RDBStorage:
     """The Optuna storage at ``url`` (any SQLAlchemy URL Optuna takes). Running trials send a heartbeat,
-    so a later worker marks those of a killed one as failed; SQLite waits up to a minute for a lock."""
-    connect_args = {"timeout": 60} if url.startswith("sqlite") else {}
+    so a later worker marks those of a killed one as failed; SQLite waits up to a minute for a lock.
+
+    Workers that open a new database at the same moment each create Optuna's tables, and all but one
+    fail on the tables the first one made (PostgreSQL); those try again, up to ``OPEN_ATTEMPTS`` times
+    in all, and then find the tables there."""
+    from sqlalchemy.exc import IntegrityError, ProgrammingError
+
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)  # the heartbeat's
-            return optuna.storages.RDBStorage(
-                url, engine_kwargs={"connect_args": connect_args}, heartbeat_interval=60, grace_period=180
-            )
+        for attempt in range(1, OPEN_ATTEMPTS):
+            try:
+                return _rdb_storage(url)
+            except (IntegrityError, ProgrammingError):  # another worker's tables (or a fault, raised below)
+                time.sleep(OPEN_RETRY_PAUSE * attempt)
+        return _rdb_storage(url)
+    except ImportError as error:  # Optuna's, raised from SQLAlchemy's import of the database driver
+        raise ConfigError(
+            f"Cannot open the Optuna storage {hide_password(url)}: {missing_driver(url, error)}"
+        ) from error
     except Exception as error:  # SQLAlchemy's errors differ by database: name the URL and pass its message
         raise ConfigError(f"Cannot open the Optuna storage {hide_password(url)}: {error}") from error
+
+
+def _rdb_storage(url: str) -> optuna.storages.RDBStorage:
+    """One try of :func:`open_storage`."""
+    connect_args = {"timeout": 60} if url.startswith("sqlite") else {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)  # the heartbeat's
+        return optuna.storages.RDBStorage(
+            url, engine_kwargs={"connect_args": connect_args}, heartbeat_interval=60, grace_period=180
+        )
+
+
+def missing_driver(url: str, error: ImportError) -> str:
+    """What to install when the Python driver of the database at ``url`` does not import (``error``:
+    Optuna's, whose cause is the driver's own ``ImportError``)."""
+    cause = error.__cause__ or error
+    if url.startswith("postgresql"):
+        return (
+            f"the PostgreSQL driver is not installed ({cause}); pip install 'sb3_hgrn[postgres]' "
+            "installs psycopg 3, the driver of postgresql+psycopg:// URLs."
+        )
+    return f"the database driver the URL names is not installed ({cause}); install it with pip."
 
 
 def open_study(

@@ -1,0 +1,239 @@
+"""``sb3-hgrn tune`` workers sharing one study through a real PostgreSQL server.
+
+The fixture starts a throwaway PostgreSQL cluster that listens on a Unix socket only, in a
+directory of its own; the workers are separate ``sb3-hgrn tune`` processes, as on separate machines.
+"""
+
+import glob
+import multiprocessing
+import os
+import pwd
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import pytest
+
+from sb3_hgrn.cli import main
+from tests.test_tune import SPACE, TOY
+
+STUDY = "shared"
+# A quiet `tune` command at the `ci` budget, cut to two evaluations of one episode per trial.
+WORKER = [sys.executable, "-m", "sb3_hgrn", "tune", *TOY, "--verbose", "0"]
+WORKER += "--timesteps 300 --eval-freq 150 --eval-episodes 1 --env-param n_agents=5 --pruner none".split()
+
+
+def server_binaries() -> tuple[str, str] | None:
+    """``initdb`` and ``pg_ctl`` from ``PATH`` or the newest ``/usr/lib/postgresql/*/bin``; ``None``
+    when no directory has both."""
+    for path in [None, *sorted(glob.glob("/usr/lib/postgresql/*/bin"), reverse=True)]:
+        initdb, pg_ctl = shutil.which("initdb", path=path), shutil.which("pg_ctl", path=path)
+        if initdb and pg_ctl:
+            return initdb, pg_ctl
+    return None
+
+
+def server_user() -> dict:
+    """``subprocess`` arguments running the server's commands as a user it accepts: PostgreSQL refuses
+    to run as root, so under root they run as ``postgres`` (or ``nobody``); otherwise as this user."""
+    if os.geteuid() != 0:
+        return {}
+    for name in ("postgres", "nobody"):
+        try:
+            entry = pwd.getpwnam(name)
+        except KeyError:
+            continue
+        return {"user": entry.pw_uid, "group": entry.pw_gid, "extra_groups": []}
+    pytest.skip("PostgreSQL refuses to run as root, and there is no postgres or nobody user to run it as")
+
+
+def free_port() -> int:
+    """A port number no TCP server uses now (the server only names its socket file after it)."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def run_server_command(command: list[str], as_user: dict, cwd: Path, log: Path | None = None) -> None:
+    """Run one of the server's commands; fail the test with its output (and the server log) if it fails."""
+    done = subprocess.run(command, cwd=cwd, capture_output=True, text=True, timeout=120, **as_user)
+    if done.returncode:
+        server_log = log.read_text() if log is not None and log.exists() else ""
+        pytest.fail(f"{' '.join(command)} exited {done.returncode}:\n{done.stdout}{done.stderr}{server_log}")
+
+
+class PostgresServer:
+    """A PostgreSQL server of the tests, reached through the Unix socket in ``socket_dir``."""
+
+    def __init__(self, socket_dir: Path, port: int):
+        self.socket_dir = socket_dir
+        self.port = port
+
+    def new_database(self, name: str) -> str:
+        """Create the empty database ``name``; its SQLAlchemy URL."""
+        import psycopg
+
+        with psycopg.connect(
+            host=str(self.socket_dir), port=self.port, user="postgres", dbname="postgres", autocommit=True
+        ) as db:
+            db.execute(f"CREATE DATABASE {name}")
+        return f"postgresql+psycopg://postgres@/{name}?host={self.socket_dir}&port={self.port}"
+
+
+@pytest.fixture(scope="module")
+def postgres():
+    """A PostgreSQL server started for this module in a directory of its own, stopped after it."""
+    pytest.importorskip("optuna")
+    pytest.importorskip("psycopg", reason="no PostgreSQL driver: pip install 'sb3_hgrn[postgres]'")
+    binaries = server_binaries()
+    if binaries is None:
+        pytest.skip("no PostgreSQL server binaries (initdb, pg_ctl) on PATH or in /usr/lib/postgresql/*/bin")
+    initdb, pg_ctl = binaries
+    as_user = server_user()
+    # Not under pytest's temporary directory, which only its owner may enter.
+    root = Path(tempfile.mkdtemp(prefix="sb3_hgrn_pg_"))
+    if as_user:
+        os.chown(root, as_user["user"], as_user["group"])
+    data, log, port = root / "data", root / "server.log", free_port()
+    options = f"-k {root} -p {port} -c listen_addresses='' -c fsync=off"
+    try:
+        init = [initdb, "-D", str(data), *"-U postgres --auth=trust --no-sync -E UTF8 --locale=C".split()]
+        run_server_command(init, as_user, root)
+        run_server_command(
+            [pg_ctl, "-D", str(data), "-l", str(log), "-o", options, "-w", "start"], as_user, root, log
+        )
+        yield PostgresServer(root, port)
+    finally:
+        if (data / "postmaster.pid").exists():
+            subprocess.run(
+                [pg_ctl, "-D", str(data), "-m", "immediate", "stop"],
+                cwd=root,
+                capture_output=True,
+                timeout=60,
+                **as_user,
+            )
+        shutil.rmtree(root, ignore_errors=True)
+
+
+def start_worker(args: list[str]) -> subprocess.Popen:
+    """An ``sb3-hgrn tune`` process with one torch thread."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    return subprocess.Popen(
+        [*WORKER, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+    )
+
+
+def finish(worker: subprocess.Popen) -> tuple[int, str, str]:
+    """Wait for ``worker``; its exit status, standard output and standard error."""
+    out, err = worker.communicate(timeout=300)
+    return worker.returncode, out, err
+
+
+def test_two_workers_share_a_study_in_postgres(postgres, tmp_path):
+    import optuna
+
+    postgres_url = postgres.new_database("two_workers")
+    space = tmp_path / "space.yml"
+    space.write_text(SPACE, encoding="utf-8")
+    shared = [
+        "--search-space",
+        str(space),
+        "--storage",
+        postgres_url,
+        "--study-name",
+        STUDY,
+        "--n-trials",
+        "2",
+    ]
+    start = time.perf_counter()
+    workers = [
+        start_worker([*shared, "--sampler-seed", str(seed), "--folder", str(tmp_path / machine)])
+        for machine, seed in (("machine_a", 100), ("machine_b", 200))
+    ]
+    results = [finish(worker) for worker in workers]
+    wall = time.perf_counter() - start
+    for code, out, err in results:
+        assert code == 0, f"a worker exited {code}:\n{out}\n{err}"
+
+    trials = optuna.load_study(storage=postgres_url, study_name=STUDY).get_trials()
+    spans = [(trial.datetime_start, trial.datetime_complete) for trial in trials]
+    overlapping = any(a[0] < b[1] and b[0] < a[1] for i, a in enumerate(spans) for b in spans[i + 1 :])
+    trained = sum((end - begin).total_seconds() for begin, end in spans)
+    print(
+        f"\n2 workers, {len(trials)} trials in PostgreSQL: {wall:.1f} s wall, {trained:.1f} s in trials, "
+        f"trials of both workers ran at once: {overlapping}"
+    )
+    assert [trial.state for trial in trials] == [optuna.trial.TrialState.COMPLETE] * 4
+    assert sorted(trial.number for trial in trials) == [0, 1, 2, 3]
+    assert len({trial.params["learning_rate"] for trial in trials}) == 4  # the two samplers' seeds differ
+    rows = [
+        len((tmp_path / machine / STUDY / "trials.csv").read_text().splitlines()) - 1
+        for machine in ("machine_a", "machine_b")
+    ]
+    assert min(rows) >= 2 and max(rows) == 4  # each writes the whole study as it stands when it ends
+    assert any(f"study {STUDY!r}: 4 trials (4 complete)" in out for _, out, _ in results)
+
+    other = start_worker(
+        [*shared, "--timesteps", "600", "--eval-episodes", "2", "--folder", str(tmp_path / "machine_c")]
+    )
+    code, _, err = finish(other)
+    assert code == 2
+    assert (
+        f"The study {STUDY!r}" in err and "created for another setup (timesteps, eval_episodes differ)" in err
+    )
+    assert postgres_url.split("?")[0] in err
+    assert len(optuna.load_study(storage=postgres_url, study_name=STUDY).get_trials()) == 4
+
+
+def open_at_once(setup, url: str, barrier, errors) -> None:
+    """Open the study ``STUDY`` of ``setup`` at ``url`` once every process has reached ``barrier``;
+    put the error's name and message, or ``None``, on the queue ``errors``."""
+    import optuna
+
+    from sb3_hgrn.experiments.tune import open_study
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    try:
+        barrier.wait(timeout=120)
+        open_study(setup, url, STUDY)
+        errors.put(None)
+    except Exception as error:
+        errors.put(f"{type(error).__name__}: {error}")
+
+
+def test_workers_opening_a_new_database_at_once_all_join_one_study(postgres):
+    import optuna
+
+    from sb3_hgrn.experiments.tune import SETUP_ATTR, TuneSetup, load_search_space
+
+    url = postgres.new_database("at_once")
+    setup = TuneSetup("surviving_v0", "soft_hgrn", "ci", 0, load_search_space("soft_hgrn"))
+    context = multiprocessing.get_context("spawn")
+    barrier, errors = context.Barrier(2), context.Queue()
+    workers = [context.Process(target=open_at_once, args=(setup, url, barrier, errors)) for _ in range(2)]
+    for worker in workers:
+        worker.start()
+    outcomes = [errors.get(timeout=180) for _ in workers]
+    for worker in workers:
+        worker.join(timeout=60)
+    assert outcomes == [None] * 2  # each created Optuna's tables, or found another's, and joined
+    studies = optuna.get_all_study_summaries(storage=url)
+    assert [study.study_name for study in studies] == [STUDY]
+    assert studies[0].user_attrs[SETUP_ATTR] == setup.describe()
+
+
+def test_a_missing_driver_names_the_extra(tmp_path, capsys, monkeypatch):
+    pytest.importorskip("optuna")
+    monkeypatch.setitem(sys.modules, "psycopg", None)  # its import fails, as when it is not installed
+    url = f"postgresql+psycopg://postgres@/optuna?host={tmp_path}"
+    with pytest.raises(SystemExit) as exit_info:
+        main(["tune", *TOY, "--n-trials", "1", "--storage", url, "--folder", str(tmp_path / "tune")])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert "Cannot open the Optuna storage postgresql+psycopg://postgres@/optuna" in err
+    assert "the PostgreSQL driver is not installed" in err and "pip install 'sb3_hgrn[postgres]'" in err
+    assert not (tmp_path / "tune").exists()
