@@ -20,7 +20,9 @@ _MODULES = {
     "RandomGraphPolicy": "sb3_hgrn.common.evaluation",
     "SACHGRN": "sb3_hgrn.sac_hgrn",
     "SoftHGRN": "sb3_hgrn.soft_hgrn",
+    "TeamFigures": "sb3_hgrn.envs.wrappers",
     "evaluate_graph_policy": "sb3_hgrn.common.evaluation",
+    "evaluate_team_episodes": "sb3_hgrn.common.evaluation",
     "make_graph_vec_env": "sb3_hgrn.common.vec_env",
 }
 """The module that defines each public name."""
@@ -34,8 +36,10 @@ __all__ = [
     "RandomGraphPolicy",
     "SACHGRN",
     "SoftHGRN",
+    "TeamFigures",
     "__version__",
     "evaluate_graph_policy",
+    "evaluate_team_episodes",
     "make_graph_vec_env",
 ]
 

@@ -39,27 +39,25 @@ class RandomGraphPolicy:
         return self.rng.integers(0, high, size=len(observation["obs"])), state
 
 
-def evaluate_graph_policy(
-    model: BaseAlgorithm,
-    env: VecEnv,
-    n_eval_episodes: int = 10,
-    deterministic: bool = False,
-    return_episode_rewards: bool = False,
-) -> tuple[float, float] | tuple[list[float], list[int]]:
-    """Run ``n_eval_episodes`` team episodes and report their team returns.
+def evaluate_team_episodes(
+    model: BaseAlgorithm, env: VecEnv, n_eval_episodes: int = 10, deterministic: bool = False
+) -> list[dict[str, Any]]:
+    """Run ``n_eval_episodes`` team episodes and return the figures of each.
 
-    A team episode is one episode of one env copy; its return is the sum of all agents' rewards
-    over all its steps. Episodes are spread evenly over the copies, every copy keeps stepping until
-    all are counted, and the recurrent state is reset exactly at each copy's episode starts.
+    A team episode is one episode of one env copy. Episodes are spread evenly over the copies, every
+    copy keeps stepping until all are counted, and the recurrent state is reset exactly at each
+    copy's episode starts.
 
     :param model: a trained graph model, or anything with its
         ``predict(obs, state, episode_start, deterministic)`` (e.g. :class:`RandomGraphPolicy`).
     :param env: a graph VecEnv (:func:`sb3_hgrn.make_graph_vec_env`); it is reset first.
     :param n_eval_episodes: number of team episodes.
     :param deterministic: greedy actions instead of sampled ones.
-    :param return_episode_rewards: return the per-episode lists instead of mean and std.
     :raises ValueError: on a NaN or infinite reward, naming the agent and the step.
-    :return: ``(mean, std)`` of team returns, or ``(returns, lengths)``.
+    :return: each episode's ``info["team_episode"]`` dict, in the order the episodes ended: the team
+        return ``r`` (the sum of all agents' rewards over all its steps), the length ``l``, the env's
+        team figures after the last step (those of sb3_hgrn's envs, or of an env's ``team_info()``
+        such as :class:`~sb3_hgrn.envs.wrappers.TeamFigures`), the final observation and terminations.
     """
     env = check_graph_env(env)
     n_agents = env.n_agents
@@ -68,8 +66,7 @@ def evaluate_graph_policy(
     n_copies = env.num_envs // n_agents
     targets = np.array([(n_eval_episodes + copy) // n_copies for copy in range(n_copies)])
     counts = np.zeros(n_copies, dtype=int)
-    returns: list[float] = []
-    lengths: list[int] = []
+    episodes: list[dict[str, Any]] = []
     observations = env.reset()
     state = None
     episode_starts = np.ones(env.num_envs, dtype=bool)
@@ -84,12 +81,36 @@ def evaluate_graph_policy(
         episode_starts = np.asarray(dones, dtype=bool)
         for copy in np.flatnonzero(episode_starts[::n_agents]):
             if counts[copy] < targets[copy]:
-                team = infos[copy * n_agents]["team_episode"]
-                returns.append(float(team["r"]))
-                lengths.append(int(team["l"]))
+                episodes.append(infos[copy * n_agents]["team_episode"])
                 counts[copy] += 1
+    return episodes
+
+
+def evaluate_graph_policy(
+    model: BaseAlgorithm,
+    env: VecEnv,
+    n_eval_episodes: int = 10,
+    deterministic: bool = False,
+    return_episode_rewards: bool = False,
+) -> tuple[float, float] | tuple[list[float], list[int]]:
+    """Run ``n_eval_episodes`` team episodes and report their team returns.
+
+    A team episode is one episode of one env copy; its return is the sum of all agents' rewards
+    over all its steps (see :func:`evaluate_team_episodes`, which also returns the env's figures).
+
+    :param model: a trained graph model, or anything with its
+        ``predict(obs, state, episode_start, deterministic)`` (e.g. :class:`RandomGraphPolicy`).
+    :param env: a graph VecEnv (:func:`sb3_hgrn.make_graph_vec_env`); it is reset first.
+    :param n_eval_episodes: number of team episodes.
+    :param deterministic: greedy actions instead of sampled ones.
+    :param return_episode_rewards: return the per-episode lists instead of mean and std.
+    :raises ValueError: on a NaN or infinite reward, naming the agent and the step.
+    :return: ``(mean, std)`` of team returns, or ``(returns, lengths)``.
+    """
+    episodes = evaluate_team_episodes(model, env, n_eval_episodes, deterministic)
+    returns = [float(episode["r"]) for episode in episodes]
     if return_episode_rewards:
-        return returns, lengths
+        return returns, [int(episode["l"]) for episode in episodes]
     return float(np.mean(returns)), float(np.std(returns))
 
 

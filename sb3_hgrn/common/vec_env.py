@@ -41,6 +41,7 @@ from sb3_hgrn.envs.wrappers import as_parallel_env
 
 REGISTERED_ENVS = ("surviving_v0", "uav_mbs_v0", "pursuit_v0", "ctc_v0")
 NEIGHBOR_INDEX_HIGH = np.iinfo(np.int32).max
+TEAM_EPISODE_KEYS = frozenset({"r", "l", "final_observation", "terminated"})  # info["team_episode"]'s own
 
 
 class UnpicklableEnvError(TypeError):
@@ -60,6 +61,10 @@ class ParallelEnvAdapter(GraphParallelEnv):
     row for every agent of ``possible_agents``, a gone agent's row holding its last observation, a
     reward of 0 and no done flags. Stepping an env without agents left raises a ``RuntimeError``
     before the env is called.
+
+    An env with a ``team_info()`` method (such as :class:`~sb3_hgrn.envs.wrappers.TeamFigures`)
+    gives the figures after each step that :class:`GraphVecEnv` adds to ``info["team_episode"]`` at
+    an episode's end: a dict by name, whose names must differ from that dict's own keys.
     """
 
     def __init__(self, env: ParallelEnv):
@@ -83,6 +88,8 @@ class ParallelEnvAdapter(GraphParallelEnv):
                 "Wrap it in sb3_hgrn.GraphFromPositions(env, positions, k=...) to link agents by position."
             )
         self.max_neighbors = int(env.max_neighbors)
+        team_info = getattr(env, "team_info", None)
+        self._team_info = team_info if callable(team_info) else dict
         self.render_mode = getattr(env, "render_mode", None)
         space = self.shared_observation_space
         # the row of an agent not observed yet: the point of the space nearest to zero
@@ -121,8 +128,23 @@ class ParallelEnvAdapter(GraphParallelEnv):
             np.fromiter((rewards.get(agent, 0.0) for agent in possible), dtype=np.float32, count=n),
             np.fromiter((terminations.get(agent, False) for agent in possible), dtype=bool, count=n),
             np.fromiter((truncations.get(agent, False) for agent in possible), dtype=bool, count=n),
-            {},
+            self._checked_team_info(),
         )
+
+    def _checked_team_info(self) -> dict[str, Any]:
+        """The env's ``team_info()``, or a ``TypeError`` / ``ValueError`` naming what is wrong with it."""
+        team_info = self._team_info()
+        if not isinstance(team_info, dict):
+            raise TypeError(
+                f"{type(self.env).__name__}.team_info() must return a dict, got {type(team_info).__name__}."
+            )
+        taken = sorted(TEAM_EPISODE_KEYS.intersection(team_info))
+        if taken:
+            raise ValueError(
+                f"{type(self.env).__name__}.team_info() names {taken}, which info['team_episode'] holds "
+                f"itself ({', '.join(sorted(TEAM_EPISODE_KEYS))}); rename them."
+            )
+        return team_info
 
     def _rows(self, agents: Sequence[str]) -> np.ndarray:
         """The ``possible_agents`` index of every agent in ``agents``, or a ``ValueError`` naming one

@@ -3,14 +3,17 @@
 :class:`GraphFromPositions` gives any ``ParallelEnv`` the ``neighbors()`` method and
 ``max_neighbors`` attribute that :func:`sb3_hgrn.make_graph_vec_env` needs, from the agents'
 positions. :class:`DrivenAgents` keeps some of an env's agents as its agents (the learners) and has
-a controller drive the others. :func:`as_parallel_env` turns a PettingZoo AEC env whose agents act
-simultaneously into a ``ParallelEnv``.
+a controller drive the others. :class:`TeamFigures` reports figures of the team's episode (agents
+left per side, targets reached) that :func:`sb3_hgrn.make_graph_vec_env` adds to its episode infos.
+:func:`as_parallel_env` turns a PettingZoo AEC env whose agents act simultaneously into a
+``ParallelEnv``.
 """
 
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Collection, Sequence
+import numbers
+from collections.abc import Callable, Collection, Mapping, Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -115,6 +118,64 @@ class GraphFromPositions(BaseParallelWrapper):
             lists.flags.writeable = False
             self._lists = lists
         return self._lists
+
+
+class TeamFigures(BaseParallelWrapper):
+    """A ``ParallelEnv`` that reports figures of its episode, such as the agents left on each side.
+
+    After every step ``figures(env)`` is called with the env given here and returns a dict of
+    numbers by name; :meth:`team_info` gives the last one. The graph VecEnv of
+    :func:`sb3_hgrn.make_graph_vec_env` reads it after each step and adds the one after an episode's
+    last step to that episode's ``info["team_episode"]``, next to the team return ``r`` and the
+    length ``l``; :func:`sb3_hgrn.evaluate_team_episodes` returns them::
+
+        env = TeamFigures(DrivenAgents(battle, "red_"), lambda env: {"left": len(env.agents)})
+
+    Everything else (agents, spaces, ``neighbors()`` where the wrapped env has one) is the wrapped env's.
+
+    Args:
+        env: the PettingZoo ``ParallelEnv`` (or parallelizable AEC env, see :func:`as_parallel_env`).
+        figures: ``figures(env) -> {name: number}``, read once after every step.
+
+    Raises:
+        TypeError: ``figures`` is not callable, or (at a step) returns something other than a dict of
+            real numbers by string name.
+    """
+
+    def __init__(self, env: ParallelEnv | AECEnv, figures: Callable[[Any], Mapping[str, float]]):
+        if not callable(figures):
+            raise TypeError(
+                f"figures must be a callable taking the env and returning a dict of numbers by name, got "
+                f"{type(figures).__name__}."
+            )
+        super().__init__(as_parallel_env(env))
+        self._figures = functools.partial(figures, env)
+        self._last: dict[str, float] = {}
+
+    def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
+        self._last = {}
+        return self.env.reset(seed=seed, options=options)
+
+    def step(self, actions: dict) -> tuple[dict, dict, dict, dict, dict]:
+        results = self.env.step(actions)
+        self._last = _figures(self._figures())
+        return results
+
+    def team_info(self) -> dict[str, float]:
+        """The figures after the last step (empty after a reset), a new dict at every call."""
+        return dict(self._last)
+
+
+def _figures(figures: Any) -> dict[str, float]:
+    """``figures`` as a dict, or a ``TypeError`` when it is not a mapping of real numbers by string name."""
+    if not isinstance(figures, Mapping):
+        raise TypeError(f"figures must return a dict of numbers by name, got {type(figures).__name__}.")
+    for name, value in figures.items():
+        if not isinstance(name, str) or not isinstance(value, numbers.Real):
+            raise TypeError(
+                f"figures must return real numbers by string name, got {name!r}: {type(value).__name__}."
+            )
+    return dict(figures)
 
 
 class DrivenAgents(ParallelEnv):
