@@ -206,6 +206,27 @@ def test_ray_backend_reproduces_the_local_table(local_ray, tmp_path):
     assert table == (tmp_path / "local" / "table1.md").read_text().split("Summed wall time")[0]
 
 
+@pytest.mark.skipif(
+    not os.environ.get("SB3_HGRN_FULL_TABLE"),
+    reason="the whole ci Table 1 twice takes minutes; set SB3_HGRN_FULL_TABLE=1 to run it",
+)
+def test_ray_backend_reproduces_the_whole_ci_table(local_ray, tmp_path):
+    """Every preset on every env, 3 seeds, at budget ci: the same folders and table on both backends."""
+    from sb3_hgrn.experiments.backends import RayBackend
+
+    table = {"budget": "ci", "n_seeds": 3, "jobs": 2}
+    assert run_sweep(**table, folder=tmp_path / "local", threads=1, backend=LocalBackend()) == []
+    assert run_sweep(**table, folder=tmp_path / "ray", backend=RayBackend()) == []
+    assert _layout(tmp_path / "local") == _layout(tmp_path / "ray")
+    evaluations = [path for path in _layout(tmp_path / "ray") if path.endswith("eval.json")]
+    assert len(evaluations) == 12 * 3 * 3 + 3 * 3  # every run, and the random anchor of each env and seed
+    assert _rows(tmp_path / "local") == _rows(tmp_path / "ray")
+    markdown = [
+        (tmp_path / side / "table1.md").read_text().split("Summed wall time")[0] for side in ("local", "ray")
+    ]
+    assert markdown[0] == markdown[1]
+
+
 def test_a_stopped_ray_task_stops_its_run(local_ray, tmp_path):
     from sb3_hgrn.experiments.backends import RayBackend
 

@@ -67,7 +67,7 @@ def test_evaluate_team_episodes_returns_each_episode_with_its_figures():
 def test_an_env_without_team_info_adds_nothing():
     vec_env = make_graph_vec_env(lambda: DrivenAgents(TwoTeamsWithGraph(max_cycles=2), "a_"), seed=0)
     (episode,) = evaluate_team_episodes(RandomGraphPolicy(vec_env, seed=0), vec_env, n_eval_episodes=1)
-    assert set(episode) == {"r", "l", "final_observation", "terminated"}
+    assert set(episode) == {"r", "l", "agents", "final_observation", "terminated"}
 
 
 @pytest.mark.parametrize(

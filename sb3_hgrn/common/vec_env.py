@@ -41,7 +41,8 @@ from sb3_hgrn.envs.wrappers import as_parallel_env
 
 REGISTERED_ENVS = ("surviving_v0", "uav_mbs_v0", "pursuit_v0", "ctc_v0")
 NEIGHBOR_INDEX_HIGH = np.iinfo(np.int32).max
-TEAM_EPISODE_KEYS = frozenset({"r", "l", "final_observation", "terminated"})  # info["team_episode"]'s own
+# the keys of info["team_episode"] itself, which an env's team_info() must not take
+TEAM_EPISODE_KEYS = frozenset({"r", "l", "agents", "final_observation", "terminated"})
 
 
 class UnpicklableEnvError(TypeError):
