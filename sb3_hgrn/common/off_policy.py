@@ -619,7 +619,8 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         if self._team_episodes:
             team_returns = [episode["r"] for episode in self._team_episodes]
             self.logger.record("rollout/ep_team_rew_mean", safe_mean(team_returns))
-            # per agent: each episode's team return over the agents that lived in it
+            # per agent: each episode's team return over the agents that lived in it (episodes restored
+            # from a training state written before "agents" was counted: over every slot)
             self.logger.record(
                 "rollout/ep_rew_mean",
                 safe_mean(
