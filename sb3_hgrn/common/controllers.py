@@ -10,9 +10,10 @@ repeats exactly. :func:`resolve_model_paths` turns the saved models' paths of an
 
 from __future__ import annotations
 
+import contextlib
 import inspect
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import gymnasium as gym
@@ -118,16 +119,19 @@ class ModelController:
         :return: actions ``(n_agents,)`` and the model's new recurrent state.
         """
         seed, self._seed = self._seed, None
-        if seed is None:
+        with contextlib.nullcontext() if seed is None else _torch_seeded(seed):
             return self.model.predict(
                 observation, state=state, episode_start=episode_start, deterministic=deterministic
             )
-        # th.manual_seed is 100x slower than seeding the CPU generator alone.
-        with th.random.fork_rng(devices=[]):
-            th.default_generator.manual_seed(seed)
-            return self.model.predict(
-                observation, state=state, episode_start=episode_start, deterministic=deterministic
-            )
+
+
+@contextlib.contextmanager
+def _torch_seeded(seed: int) -> Iterator[None]:
+    """Torch's CPU generator seeded with ``seed`` inside the block, and as it was before after it."""
+    # th.manual_seed is 100x slower than seeding the CPU generator alone.
+    with th.random.fork_rng(devices=[]):
+        th.default_generator.manual_seed(seed)
+        yield
 
 
 def resolve_model_paths(env_fn: Callable[..., Any], env_kwargs: dict[str, Any]) -> dict[str, Any]:
