@@ -7,23 +7,66 @@ Run: python benchmarks/surviving_paper_map.py [--preset soft_hgrn] [--seeds 0 1 
 ``--eval-every`` env steps (default 5,000, up to ``--env-steps`` 15,000) it prints the team return over
 4 episodes with 30 % epsilon-random actions (the original's test mode) and with the plain policy,
 and the wall time of training so far. ``--paper`` uses the original's network size and schedule
-(``make_model(..., paper=True)``). Two torch threads.
+(``make_model(..., paper=True)``). Two torch threads. ``--average-taus`` also evaluates, at each
+checkpoint, Polyak averages of the online Q-network with those weights, kept beside the same
+training run (``policy_kwargs.average_tau`` makes one of them the model's own deployed network).
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from contextlib import contextmanager
 
 import numpy as np
 import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_hgrn import evaluate_graph_policy, make_graph_vec_env
+from sb3_hgrn.common.averaging import polyak_average
 from sb3_hgrn.experiments.config import parse_assignments
 from sb3_hgrn.experiments.runs import EpsilonRandomPolicy
 from sb3_hgrn.presets import make_model
 
 PAPER_MAP = dict(n_agents=100, map_size=32, n_resources=8, max_cycles=500)
+
+
+class Averages(BaseCallback):
+    """Polyak averages of ``q_net`` by weight ``tau``, updated after each gradient step."""
+
+    def __init__(self, q_net: th.nn.Module, taus: list[float]):
+        super().__init__()
+        self.q_net = q_net
+        self.networks = {tau: polyak_average(q_net, tau) for tau in taus}
+        self.updates_seen: int | None = None
+
+    def _on_step(self) -> bool:
+        if self.updates_seen is None:
+            self.updates_seen = self.model._n_updates
+        for _ in range(self.model._n_updates - self.updates_seen):
+            for average in self.networks.values():
+                average.update_parameters(self.q_net)
+        self.updates_seen = self.model._n_updates
+        return True
+
+
+def evaluate(model, eval_env, seed: int, episodes: int) -> tuple[float, float]:
+    """Mean team return over ``episodes`` with 30 % epsilon-random actions, then with the plain policy."""
+    noisy = EpsilonRandomPolicy(model, 0.3, seed=seed)
+    eps_return = evaluate_graph_policy(noisy, eval_env, n_eval_episodes=episodes)[0]
+    return eps_return, evaluate_graph_policy(model, eval_env, n_eval_episodes=episodes)[0]
+
+
+@contextmanager
+def deployed(model, network: th.nn.Module):
+    """Let ``model`` act with ``network`` in place of its deployed Q-network inside the block."""
+    policy = model.policy
+    own = policy.q_net_average
+    policy.q_net_average = network
+    try:
+        yield
+    finally:
+        policy.q_net_average = own
 
 
 def main() -> None:
@@ -40,37 +83,47 @@ def main() -> None:
     parser.add_argument("--env-param", nargs="*", default=[], help="env arguments, KEY=VALUE")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--save", help="save each seed's final model as SAVE_seed<S>.zip")
+    parser.add_argument(
+        "--average-taus", type=float, nargs="*", default=[], help="also evaluate these averages"
+    )
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     env_kwargs = {**PAPER_MAP, **parse_assignments(args.env_param)}
     n_agents = env_kwargs["n_agents"]
     checkpoints = range(args.eval_every, args.env_steps + 1, args.eval_every)
-    curves: dict[int, list[tuple[float, float]]] = {step: [] for step in checkpoints}
+    names = ["model"] + [f"average tau {tau}" for tau in args.average_taus]
+    curves: dict[tuple[str, int], list[tuple[float, float]]] = {
+        (name, step): [] for name in names for step in checkpoints
+    }
     for seed in args.seeds:
         env = make_graph_vec_env("surviving_v0", n_envs=1, seed=seed, env_kwargs=env_kwargs)
         eval_env = make_graph_vec_env("surviving_v0", n_envs=1, seed=seed + 1000, env_kwargs=env_kwargs)
         model = make_model(args.preset, env, paper=args.paper, seed=seed, **parse_assignments(args.param))
         trained, train_time = 0, 0.0
+        averages = Averages(model.policy.q_net, args.average_taus)
         for step in checkpoints:
             start = time.time()
-            model.learn((step - trained) * n_agents, reset_num_timesteps=trained == 0)
+            model.learn((step - trained) * n_agents, reset_num_timesteps=trained == 0, callback=averages)
             train_time += time.time() - start
             trained = step
-            noisy = EpsilonRandomPolicy(model, 0.3, seed=seed)
-            eps_return = evaluate_graph_policy(noisy, eval_env, n_eval_episodes=args.eval_episodes)[0]
-            plain = evaluate_graph_policy(model, eval_env, n_eval_episodes=args.eval_episodes)[0]
-            curves[step].append((eps_return, plain))
+            eps_return, plain = evaluate(model, eval_env, seed, args.eval_episodes)
+            curves["model", step].append((eps_return, plain))
             print(
                 f"seed {seed}  {step:6d} env steps ({model._n_updates} updates)  eps 0.3: {eps_return:8.1f}"
                 f"  plain: {plain:8.1f}  training {train_time:6.0f} s",
                 flush=True,
             )
+            for tau, average in averages.networks.items():
+                with deployed(model, average):
+                    eps_return, plain = evaluate(model, eval_env, seed, args.eval_episodes)
+                curves[f"average tau {tau}", step].append((eps_return, plain))
+                print(f"    average tau {tau}: eps 0.3: {eps_return:8.1f}  plain: {plain:8.1f}", flush=True)
         if args.save:
             model.save(f"{args.save}_seed{seed}.zip")
-    for step, results in curves.items():
+    for (name, step), results in curves.items():
         eps_returns, plain_returns = np.array(results).T
         print(
-            f"{step:6d} env steps: eps 0.3 {eps_returns.mean():8.1f} +- {eps_returns.std():6.1f}"
+            f"{name}, {step:6d} env steps: eps 0.3 {eps_returns.mean():8.1f} +- {eps_returns.std():6.1f}"
             f"  plain {plain_returns.mean():8.1f} +- {plain_returns.std():6.1f}  ({len(results)} seeds)"
         )
 

@@ -60,7 +60,8 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
     :param max_grad_norm: gradient-norm clip of the Q-network.
     :param hidden_dtype: storage dtype of recurrent states in the replay buffer.
     :param policy_kwargs: network options (``hidden_dim``, ``n_heads``, ``head_dim``,
-        ``communication``, ``recurrent``, ``alpha_log_space``, optimiser).
+        ``communication``, ``recurrent``, ``alpha_log_space``, ``average_tau`` for a Polyak-averaged
+        Q-network that ``predict`` acts with, optimiser).
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"GraphPolicy": SoftHGRNPolicy}
@@ -136,6 +137,9 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
         ``(batch, n_agents, n_actions)``: the soft value, or the hard max for ``stochastic=False``."""
         return soft_value(next_q, alpha) if self.stochastic else next_q.max(dim=-1).values
 
+    def _behaviour_act(self, obs: dict[str, th.Tensor], hidden: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        return self.policy.act_with(self.policy.q_net, obs, hidden)
+
     def train(self, gradient_steps: int, batch_size: int = 32) -> None:
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
@@ -158,6 +162,7 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
             loss.backward()
             th.nn.utils.clip_grad_norm_(q_net.parameters(), self.max_grad_norm)
             self.policy.optimizer.step()
+            self.policy.update_average()
 
             entropy, alpha_gradient = self._update_temperature(
                 categorical_entropy(q_values.detach() / alpha), batch.groups, batch.alive
