@@ -10,7 +10,9 @@ the action shares there. Then ``--episodes`` frozen episodes (seeds ``--seed`` o
 the model acts, and with a uniformly random move wherever an agent sees no food. Last the model
 collects ``--episodes`` episodes with its weights frozen
 (``gradient_steps=0``) and ``--episodes`` more while it is trained on as in ``learn`` (from an empty
-buffer, after 32 env steps of random actions), and prints their team returns.
+buffer, after 32 env steps of random actions), and prints their team returns; with ``--move-drift``,
+every 25 gradient steps of that training the action shares the online Q-network samples for agents
+without food in view (on states probed from a frozen episode).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch as th
 from numpy.lib.stride_tricks import sliding_window_view
+from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_hgrn import make_graph_vec_env
 from sb3_hgrn.experiments.runs import algorithm_of_zip
@@ -74,14 +77,56 @@ def frozen_episode(model, seed: int, reset_every: int, random_moves_without_food
     )
 
 
-def collected_returns(model, seed: int, episodes: int, train: bool) -> list[int]:
+def probe_states(
+    model, seed: int, steps: int = 300, every: int = 30
+) -> list[tuple[dict, np.ndarray, np.ndarray]]:
+    """Observations, recurrent states and no-food masks of a frozen episode, every ``every`` steps."""
+    env = make_graph_vec_env("surviving_v0", n_envs=1, seed=seed, env_kwargs=PAPER_MAP)
+    surviving = surviving_env(env)
+    obs, starts = env.reset(), np.ones(env.num_envs, dtype=bool)
+    state = (np.zeros((1, env.num_envs, model.policy.state_dim), dtype=np.float32),)
+    probes = []
+    for step in range(1, steps + 1):
+        no_food = food_in_view(surviving) == 0
+        actions, next_state = model.predict(obs, state=state, episode_start=starts)
+        if step % every == 0:
+            probes.append((obs, (state[0][0] * (1.0 - starts[:, None])).astype(np.float32), no_food))
+        state = next_state
+        obs, _, starts, _ = env.step(actions)
+    return probes
+
+
+class MoveDrift(BaseCallback):
+    """Every ``every`` gradient steps, print the action shares the online network samples for the
+    probed agents that see no food."""
+
+    def __init__(self, probes: list[tuple[dict, np.ndarray, np.ndarray]], every: int = 25):
+        super().__init__()
+        self.probes, self.every, self.printed = probes, every, None
+
+    def _on_step(self) -> bool:
+        updates = self.model._n_updates
+        if updates % self.every == 0 and updates != self.printed:
+            self.printed = updates
+            policy, counts = self.model.policy, np.zeros(self.model.action_space.n)
+            with th.no_grad():
+                for obs, hidden, no_food in self.probes:
+                    obs_tensor, _ = policy.obs_to_tensor(obs)
+                    actions, _ = policy.act_with(policy.q_net, obs_tensor, th.as_tensor(hidden))
+                    counts += np.bincount(actions.numpy()[no_food], minlength=counts.size)
+            shares = (counts / counts.sum()).round(2).tolist()
+            print(f"  update {updates}: action shares without food in view {shares}")
+        return True
+
+
+def collected_returns(model, seed: int, episodes: int, train: bool, callback=None) -> list[int]:
     """Team returns of ``episodes`` episodes collected by ``learn``, with or without updates."""
     env = make_graph_vec_env("surviving_v0", n_envs=1, seed=seed, env_kwargs=PAPER_MAP)
     model.set_env(env)
     model.learning_starts = 32 * env.num_envs if train else 0
     model.gradient_steps = 1 if train else 0
     model._team_episodes.clear()
-    model.learn(episodes * PAPER_MAP["max_cycles"] * env.num_envs)
+    model.learn(episodes * PAPER_MAP["max_cycles"] * env.num_envs, callback=callback)
     return [round(episode["r"]) for episode in model._team_episodes]
 
 
@@ -94,6 +139,9 @@ def main() -> None:
     parser.add_argument("--reset-every", type=int, nargs="+", default=[0, 1, 20])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument(
+        "--move-drift", action="store_true", help="while trained on, print the moves of agents without food"
+    )
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     model = algorithm_of_zip(Path(args.model)).load(args.model)
@@ -105,7 +153,9 @@ def main() -> None:
         randomised = frozen_episode(model, seed, 0, random_moves_without_food=True)
         print(f"frozen, random moves without food in view, seed {seed}: {randomised}")
     print(f"collected frozen: {collected_returns(model, args.seed, args.episodes, train=False)}")
-    print(f"collected while trained on: {collected_returns(model, args.seed, args.episodes, train=True)}")
+    drift = MoveDrift(probe_states(model, args.seed)) if args.move_drift else None
+    trained_on = collected_returns(model, args.seed, args.episodes, train=True, callback=drift)
+    print(f"collected while trained on: {trained_on}")
 
 
 if __name__ == "__main__":

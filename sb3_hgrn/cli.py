@@ -157,6 +157,11 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument(
         "--actions", action="store_true", help="also print the fraction of agent-steps that took each action"
     )
+    evaluate.add_argument(
+        "--online",
+        action="store_true",
+        help="act with the online Q-network of a model trained with policy_kwargs.average_tau",
+    )
     evaluate.add_argument("--n-envs", type=_positive_int, help="env copies (default: the run's eval_n_envs)")
     evaluate.add_argument("--seed", type=int, help="env seed (default: the run's seed + 1000)")
     evaluate.add_argument(
@@ -410,6 +415,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         n_envs=args.n_envs,
         seed=args.seed,
         trust_config=args.trust_config,
+        online=args.online,
         **parse_assignments(args.env_param, "--env-param"),
     )
     mode = "greedy" if args.deterministic else "sampled"

@@ -28,6 +28,8 @@ from sb3_hgrn.experiments.runs import (
     EpsilonRandomPolicy,
     evaluate_model,
     evaluate_random_policy,
+    evaluate_run,
+    load_run,
     make_env,
     read_eval,
 )
@@ -305,3 +307,31 @@ def test_random_anchor_follows_the_evaluation_protocol(tmp_path):
     assert done["returns"] == pytest.approx(returns)
     with pytest.raises(ConfigError, match="Unknown budget"):
         random_policy_config("surviving_v0", "nope")
+
+
+def test_evaluate_online_acts_with_the_online_network_of_an_averaging_model(surviving_run, tmp_path):
+    args = ["train", "--env", "surviving_v0", "--preset", "soft_hgrn", "--seed", "3"]
+    args += [
+        "--folder",
+        str(tmp_path),
+        *TOY,
+        "--timesteps",
+        "600",
+        "--param",
+        "batch_size=4",
+        "policy_kwargs.hidden_dim=16",
+    ]
+    args += ["policy_kwargs.average_tau=0.05", "--env-param", "n_agents=5"]
+    assert main(args) == 0
+    run = tmp_path / "surviving_v0" / "soft_hgrn" / "seed_3"
+    by_network = {}
+    for online in (False, True):
+        model, env, _ = load_run(run, device="cpu")
+        assert model.policy.q_net_average is not None
+        if online:
+            model.policy.drop_average()
+        by_network[online] = evaluate_model(model, env, 4, True)
+        assert evaluate_run(run, n_episodes=4, deterministic=True, online=online) == by_network[online]
+    assert by_network[False] != by_network[True]
+    with pytest.raises(ConfigError, match="--online needs a model that deploys an averaged Q-network"):
+        evaluate_run(surviving_run, n_episodes=1, online=True)

@@ -61,6 +61,11 @@ class SoftHGRNPolicy(GraphPolicy):
         if self.q_net_average is not None:
             self.q_net_average.update_parameters(self.q_net)
 
+    def drop_average(self) -> None:
+        """Forget the averaged Q-network: act with the online one from now on."""
+        self.q_net_average = None
+        self.average_tau = None
+
     def act(
         self, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False
     ) -> tuple[th.Tensor, th.Tensor]:
