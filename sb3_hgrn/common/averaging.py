@@ -12,7 +12,8 @@ class PolyakWeight:
     ``1 / tau`` iterates, then ``average <- (1 - tau) average + tau current``.
 
     Starting as a plain mean keeps the first iterates (a fresh network's weights) from weighing on
-    the average for about ``1 / tau`` updates. Tensor arithmetic only: no host synchronisation.
+    the average for about ``1 / tau`` updates. The weight is computed on the device, from the
+    count that ``AveragedModel`` keeps there.
     """
 
     def __init__(self, tau: float):
