@@ -145,6 +145,8 @@ def main() -> None:
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     model = algorithm_of_zip(Path(args.model)).load(args.model)
+    if args.move_drift and not hasattr(model.policy, "act_with"):
+        raise SystemExit("--move-drift needs a SoftHGRN model (it samples the online Q-network)")
     for reset_every in args.reset_every:
         figures = frozen_episode(model, args.seed, reset_every)
         print(f"frozen, memory reset every {reset_every or 'never'}: {figures}")

@@ -32,12 +32,15 @@ PAPER_MAP = dict(n_agents=100, map_size=32, n_resources=8, max_cycles=500)
 
 
 class Averages(BaseCallback):
-    """Polyak averages of ``q_net`` by weight ``tau``, updated after each gradient step."""
+    """Polyak averages of a Soft-HGRN policy's online Q-network by each weight ``tau``, updated after
+    each gradient step (none, and no Q-network needed, without ``taus``)."""
 
-    def __init__(self, q_net: th.nn.Module, taus: list[float]):
+    def __init__(self, policy, taus: list[float]):
         super().__init__()
-        self.q_net = q_net
-        self.networks = {tau: polyak_average(q_net, tau) for tau in taus}
+        if taus and not hasattr(policy, "update_average"):
+            raise SystemExit("--average-taus needs a Soft-HGRN preset: this one has no Q-network to average")
+        self.policy = policy
+        self.networks = {tau: polyak_average(policy.q_net, tau) for tau in taus}
         self.updates_seen: int | None = None
 
     def _on_step(self) -> bool:
@@ -45,7 +48,7 @@ class Averages(BaseCallback):
             self.updates_seen = self.model._n_updates
         for _ in range(self.model._n_updates - self.updates_seen):
             for average in self.networks.values():
-                average.update_parameters(self.q_net)
+                average.update_parameters(self.policy.q_net)
         self.updates_seen = self.model._n_updates
         return True
 
@@ -100,7 +103,7 @@ def main() -> None:
         eval_env = make_graph_vec_env("surviving_v0", n_envs=1, seed=seed + 1000, env_kwargs=env_kwargs)
         model = make_model(args.preset, env, paper=args.paper, seed=seed, **parse_assignments(args.param))
         trained, train_time = 0, 0.0
-        averages = Averages(model.policy.q_net, args.average_taus)
+        averages = Averages(model.policy, args.average_taus)
         for step in checkpoints:
             start = time.time()
             model.learn((step - trained) * n_agents, reset_num_timesteps=trained == 0, callback=averages)

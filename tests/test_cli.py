@@ -310,18 +310,9 @@ def test_random_anchor_follows_the_evaluation_protocol(tmp_path):
 
 
 def test_evaluate_online_acts_with_the_online_network_of_an_averaging_model(surviving_run, tmp_path):
-    args = ["train", "--env", "surviving_v0", "--preset", "soft_hgrn", "--seed", "3"]
-    args += [
-        "--folder",
-        str(tmp_path),
-        *TOY,
-        "--timesteps",
-        "600",
-        "--param",
-        "batch_size=4",
-        "policy_kwargs.hidden_dim=16",
-    ]
-    args += ["policy_kwargs.average_tau=0.05", "--env-param", "n_agents=5"]
+    args = ["train", "--env", "surviving_v0", "--preset", "soft_hgrn", "--seed", "3", "--folder"]
+    args += [str(tmp_path), *TOY, "--timesteps", "600", "--env-param", "n_agents=5", "--param"]
+    args += ["batch_size=4", "policy_kwargs.hidden_dim=16", "policy_kwargs.average_tau=0.05"]
     assert main(args) == 0
     run = tmp_path / "surviving_v0" / "soft_hgrn" / "seed_3"
     by_network = {}
