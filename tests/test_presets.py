@@ -66,13 +66,13 @@ def test_merge_and_unknown_preset():
 @pytest.mark.parametrize("algorithm", [SoftHGRN, SACHGRN])
 def test_temperature_moves_toward_the_target_on_a_controlled_batch(algorithm):
     """A uniform policy (entropy log|A| above a target of 0.1 log|A|) lowers alpha; a near-greedy one
-    raises it."""
+    raises it. The policy is ``softmax(Q / alpha)`` of the Q-network, SAC-HGRN's critic by default."""
     env = small_surviving(n_envs=1)
     model = algorithm("GraphPolicy", env, learning_starts=0, target_entropy_ratio=0.1, alpha_optimizer="sgd",
                       alpha_learning_rate=1.0, policy_kwargs=dict(hidden_dim=16), seed=0)  # fmt: skip
     model.learn(6 * 10)
     policy = model.policy
-    head = (policy.q_net if algorithm is SoftHGRN else policy.actor).head[0]
+    head = (policy.q_net if algorithm is SoftHGRN else policy.critics[0]).head[0]
     for scale, direction in ((0.0, -1), (1e4, +1)):
         with th.no_grad():
             head.weight.normal_().mul_(scale)

@@ -205,7 +205,12 @@ def test_tempered_actor_entropy_and_alpha_follow_the_target():
     actor's entropy comes within 0.5 nats of the target and alpha settles (0.010 here). An untempered
     actor stays near 1.8 nats, and alpha falls at the bound (1 % per update) all the way, to 0.0008."""
     model = train_on(
-        "SACHGRN", costly_tag_env, 8_000, target_entropy_ratio=0.3, policy_kwargs=dict(tempered_actor=True)
+        "SACHGRN",
+        costly_tag_env,
+        8_000,
+        target_entropy_ratio=0.3,
+        alpha_entropy="actor",
+        policy_kwargs=dict(tempered_actor=True),
     )
     policy, batch = model.policy, model.replay_buffer.sample(64)
     with th.no_grad():
@@ -215,6 +220,16 @@ def test_tempered_actor_entropy_and_alpha_follow_the_target():
         )  # fmt: skip
     assert categorical_entropy(logits).mean().item() < 0.3 * math.log(9) + 0.5
     assert policy.temperature.alpha.item() > 0.003
+
+
+@pytest.mark.parametrize("alpha_entropy, settles", [(None, True), ("actor", False)])
+def test_alpha_settles_when_it_steers_by_the_boltzmann_entropy(alpha_entropy, settles):
+    """The untempered actor of the tag task above lags its critic and stays far above the target
+    entropy, so alpha steered by it falls at the bound all the way (to 0.0008). Steered by the
+    entropy of the critic's Boltzmann policy (the default), alpha settles (0.015 here)."""
+    kwargs = {} if alpha_entropy is None else dict(alpha_entropy=alpha_entropy)
+    model = train_on("SACHGRN", costly_tag_env, 8_000, target_entropy_ratio=0.3, **kwargs)
+    assert (model.policy.temperature.alpha.item() > 0.003) == settles
 
 
 def _prefer(network, action: int) -> None:

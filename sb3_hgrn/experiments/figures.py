@@ -11,7 +11,8 @@ budget, env sizes, agent-steps, seeds and wall time).
 - ``ctc``: learning curves on CTC, training team return against agent-steps (mean and std over seeds),
   HGAT models solid, their homogeneous-attention twins dashed in the same colour.
 - ``alpha``: alpha, alpha's gradient and the action entropy against its target during Soft-HGRN
-  training on Surviving, from the runs' TensorBoard scalars.
+  and SAC-HGRN training on Surviving (and SAC-HGRN's actor's entropy), from the runs' TensorBoard
+  scalars.
 - ``transfer``: every Table 1 method trained on Surviving at the budget's agent count, then evaluated
   at 0.25, 0.5, 1, 2 and 4 times that count on the same map; team return per agent against agents.
 - ``p_alpha``: Soft-HGRN's evaluation team return on Surviving for several target-entropy ratios.
@@ -84,6 +85,8 @@ TRANSFER_SCALES = (0.25, 0.5, 1.0, 2.0, 4.0)
 P_ALPHA_RATIOS = (0.05, 0.1, 0.2, 0.3, 0.5)
 ALPHA_SERIES = ("alpha", "alpha_grad", "entropy", "target_entropy")
 """TensorBoard scalars ``train/<name>`` of the alpha figure."""
+ACTOR_ENTROPY = "actor_entropy"
+"""The actor's entropy, logged by SAC-HGRN beside the entropy its alpha steers by, drawn where logged."""
 SMOOTHING = 0.04
 """Learning curves: moving average over this fraction of a run's training episodes (at least 1)."""
 TRANSFER_FILE = "transfer.json"
@@ -474,18 +477,21 @@ def _smoothing(windows: set[int]) -> str:
     return f"moving average of {width} episodes"
 
 
-def read_scalars(folder: Path, tags: Sequence[str]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """TensorBoard scalars ``tag -> (steps, values)`` of a run (all its ``tensorboard/*`` logs)."""
+def read_scalars(
+    folder: Path, tags: Sequence[str], optional: Sequence[str] = ()
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """TensorBoard scalars ``tag -> (steps, values)`` of a run (all its ``tensorboard/*`` logs); the
+    ``optional`` tags are left out where the run does not log them."""
     try:
         from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
     except ImportError as error:
         raise ConfigError("Reading TensorBoard logs needs tensorboard (pip install tensorboard).") from error
-    values: dict[str, dict[int, float]] = {tag: {} for tag in tags}
+    values: dict[str, dict[int, float]] = {tag: {} for tag in (*tags, *optional)}
     for log_dir in sorted((folder / TENSORBOARD_DIR).glob("*")):
         accumulator = EventAccumulator(str(log_dir), size_guidance={"scalars": 0})
         accumulator.Reload()
         available = set(accumulator.Tags()["scalars"])
-        for tag in tags:
+        for tag in values:
             if tag in available:
                 values[tag].update((event.step, event.value) for event in accumulator.Scalars(tag))
     missing = [tag for tag in tags if not values[tag]]
@@ -494,7 +500,9 @@ def read_scalars(folder: Path, tags: Sequence[str]) -> dict[str, tuple[np.ndarra
             f"{folder / TENSORBOARD_DIR} logs no {', '.join(missing)} (trained without tensorboard?)."
         )
     return {
-        tag: (np.array(sorted(v)), np.array([v[step] for step in sorted(v)])) for tag, v in values.items()
+        tag: (np.array(sorted(v)), np.array([v[step] for step in sorted(v)]))
+        for tag, v in values.items()
+        if v
     }
 
 
@@ -505,16 +513,21 @@ def draw_alpha(done: Sequence[Job]) -> tuple[list[dict[str, Any]], Figure]:
     figure = _new_figure(8, 9)
     axes = figure.subplots(3, 1, sharex=True)
     for index, (preset, jobs) in enumerate(_by_preset(done).items()):
-        scalars = [read_scalars(job.folder, [f"train/{name}" for name in ALPHA_SERIES]) for job in jobs]
-        series = {
-            name: _curve_rows(preset, name, [s[f"train/{name}"] for s in scalars]) for name in ALPHA_SERIES
-        }
-        rows += [row for name in ALPHA_SERIES for row in series[name]]
+        scalars = [
+            read_scalars(job.folder, [f"train/{name}" for name in ALPHA_SERIES], [f"train/{ACTOR_ENTROPY}"])
+            for job in jobs
+        ]
+        logs_actor = all(f"train/{ACTOR_ENTROPY}" in s for s in scalars)
+        names = [*ALPHA_SERIES, *([ACTOR_ENTROPY] if logs_actor else [])]
+        series = {name: _curve_rows(preset, name, [s[f"train/{name}"] for s in scalars]) for name in names}
+        rows += [row for name in names for row in series[name]]
         label, color = _seeds_label(preset, len(jobs)), f"C{index}"
         _plot_band(axes[0], series["alpha"], label, color=color)
         _plot_band(axes[1], series["alpha_grad"], label, color=color)
         _plot_band(axes[2], series["entropy"], f"{label}: entropy", color=color)
         _plot_band(axes[2], series["target_entropy"], f"{label}: target", color=color, ls="--")
+        if ACTOR_ENTROPY in series:
+            _plot_band(axes[2], series[ACTOR_ENTROPY], f"{label}: actor's entropy", color=color, ls=":")
     axes[0].set_yscale("log")
     axes[0].set_ylabel("alpha (log scale)")
     axes[0].set_title("temperature alpha", fontsize=10)
@@ -522,7 +535,11 @@ def draw_alpha(done: Sequence[Job]) -> tuple[list[dict[str, Any]], Figure]:
     axes[1].set_ylabel("gradient (nats)")
     axes[1].set_title("alpha's gradient H - H_target (each update moves alpha by at most 1 %)", fontsize=10)
     axes[2].set_ylabel("entropy (nats)")
-    axes[2].set_title("mean action entropy H of the training batches and its target H_target", fontsize=10)
+    axes[2].set_title(
+        "mean entropy H of softmax(Q / alpha) on the training batches, its target H_target\n"
+        "and SAC-HGRN's actor's entropy (dotted)",
+        fontsize=10,
+    )
     axes[2].set_xlabel("agent-steps of training (all agents of all env copies)")
     for axis in axes:
         axis.grid(alpha=0.3)

@@ -56,8 +56,10 @@ class SACHGRN(GraphOffPolicyAlgorithm):
     :class:`~sb3_hgrn.common.vec_env.GraphVecEnv` for agents that die).
 
     Each gradient step updates the critics, then the actor, then alpha (toward
-    ``target_entropy_ratio * log|A|`` on the actor's entropy, or on that of the critic's Boltzmann
-    policy with ``alpha_entropy="boltzmann"``). With ``stochastic=False`` (``-S``) the
+    ``target_entropy_ratio * log|A|`` on the entropy of the critic's Boltzmann policy
+    ``softmax(Q / alpha)``, the policy the actor is trained toward; or on the actor's own entropy,
+    as in the paper, with ``alpha_entropy="actor"``). The actor's entropy is logged as
+    ``train/actor_entropy`` either way. With ``stochastic=False`` (``-S``) the
     actor acts greedily with epsilon-greedy exploration, the target follows the greedy action and the
     actor moves toward the greedy action of the critic (``"boltzmann"``: cross-entropy to it; the
     other losses maximise ``sum_a pi(a|o) Q(o, a)``).
@@ -68,9 +70,11 @@ class SACHGRN(GraphOffPolicyAlgorithm):
     frozen target at CPU budgets (docs/results.md).
 
     :param actor_loss: ``"boltzmann"``, ``"standard"`` or ``"policy_gradient"``.
-    :param alpha_entropy: the entropy alpha steers toward the target: ``"actor"`` (the actor's, as in
-        the paper) or ``"boltzmann"`` (that of the critic's Boltzmann policy ``softmax(Q / alpha)``,
-        which every actor loss moves the actor toward; as in SoftHGRN).
+    :param alpha_entropy: the entropy alpha steers toward the target: ``"boltzmann"`` (that of the
+        critic's Boltzmann policy ``softmax(Q / alpha)``, which every actor loss moves the actor
+        toward; as in SoftHGRN) or ``"actor"`` (the actor's, as in the paper). An actor that lags
+        its critic keeps its entropy above the target whatever alpha does, so steering by it drives
+        alpha to its floor (docs/results.md, "Temperature").
     :param behaviour_policy: the policy the agents act with while collecting: ``"actor"`` (as in
         the paper) or ``"critic"``, the first critic's Boltzmann policy ``softmax(Q / alpha)``, the
         policy every actor loss moves the actor toward. The actor and the critics learn the same way
@@ -105,7 +109,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
         alpha_learning_rate: float = 1e-3,
         stochastic: bool = True,
         actor_loss: str = "boltzmann",
-        alpha_entropy: str = "actor",
+        alpha_entropy: str = "boltzmann",
         behaviour_policy: str = "actor",
         actor_steps: int = 1,
         exploration_fraction: float = 0.1,
@@ -206,7 +210,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
         policy = self.policy
         policy.set_training_mode(True)
         self._update_learning_rate([policy.actor_optimizer, policy.critic_optimizer])
-        critic_losses, actor_losses, entropies, alpha_gradients = [], [], [], []
+        critic_losses, actor_losses, entropies, alpha_gradients, actor_entropies = [], [], [], [], []
         for _ in range(gradient_steps):
             batch = self.replay_buffer.sample(batch_size)
             actor_state, *critic_states = policy.split_state(batch.hidden)
@@ -250,10 +254,10 @@ class SACHGRN(GraphOffPolicyAlgorithm):
                 th.nn.utils.clip_grad_norm_(policy.actor.parameters(), self.max_grad_norm)
                 policy.actor_optimizer.step()
 
-            steered = logits if self.alpha_entropy == "actor" else min_q / alpha
-            entropy, alpha_gradient = self._update_temperature(
-                categorical_entropy(steered), batch.groups, batch.alive
-            )
+            actor_entropy = categorical_entropy(logits.detach())
+            steered = actor_entropy if self.alpha_entropy == "actor" else categorical_entropy(min_q / alpha)
+            entropy, alpha_gradient = self._update_temperature(steered, batch.groups, batch.alive)
+            actor_entropies.append(masked_mean(actor_entropy, batch.alive))
             if alpha_gradient is not None:
                 alpha_gradients.append(alpha_gradient)
             critic_losses.append(critic_loss.item())
@@ -266,4 +270,5 @@ class SACHGRN(GraphOffPolicyAlgorithm):
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/critic_loss", float(np.mean(critic_losses)))
         self.logger.record("train/actor_loss", float(np.mean(actor_losses)))
+        self.logger.record("train/actor_entropy", float(th.stack(actor_entropies).mean()))
         self._record_temperature(entropies, alpha_gradients)
