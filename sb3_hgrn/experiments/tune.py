@@ -427,15 +427,15 @@ def open_storage(url: str) -> optuna.storages.RDBStorage:
     so a later worker marks those of a killed one as failed; SQLite waits up to a minute for a lock.
 
     Workers that open a new database at the same moment each create Optuna's tables, and all but one
-    fail on the tables the first one made (PostgreSQL); those try again, up to ``OPEN_ATTEMPTS`` times
-    in all, and then find the tables there."""
-    from sqlalchemy.exc import IntegrityError, ProgrammingError
-
+    fail on the tables the first one made; those try again, up to ``OPEN_ATTEMPTS`` times in all, and
+    then find the tables there."""
     try:
         for attempt in range(1, OPEN_ATTEMPTS):
             try:
                 return _rdb_storage(url)
-            except (IntegrityError, ProgrammingError):  # another worker's tables (or a fault, raised below)
+            except Exception as error:
+                if not _lost_table_race(error):
+                    raise
                 time.sleep(OPEN_RETRY_PAUSE * attempt)
         return _rdb_storage(url)
     except ImportError as error:  # Optuna's, raised from SQLAlchemy's import of the database driver
@@ -444,6 +444,18 @@ def open_storage(url: str) -> optuna.storages.RDBStorage:
         ) from error
     except Exception as error:  # SQLAlchemy's errors differ by database: name the URL and pass its message
         raise ConfigError(f"Cannot open the Optuna storage {hide_password(url)}: {error}") from error
+
+
+def _lost_table_race(error: Exception) -> bool:
+    """Whether ``error`` may come from creating Optuna's tables while another worker creates them: an
+    integrity or programming error (PostgreSQL's duplicate type or key), or MySQL's "table already
+    exists" (error 1050, an operational error there). A fault of any other kind repeats on the last try
+    and is raised from there."""
+    from sqlalchemy.exc import IntegrityError, OperationalError, ProgrammingError
+
+    if isinstance(error, (IntegrityError, ProgrammingError)):
+        return True
+    return isinstance(error, OperationalError) and "already exists" in str(error.orig)
 
 
 def _rdb_storage(url: str) -> optuna.storages.RDBStorage:
@@ -464,6 +476,11 @@ def missing_driver(url: str, error: ImportError) -> str:
         return (
             f"the PostgreSQL driver is not installed ({cause}); pip install 'sb3_hgrn[postgres]' "
             "installs psycopg 3, the driver of postgresql+psycopg:// URLs."
+        )
+    if url.startswith("mysql") or url.startswith("mariadb"):
+        return (
+            f"the MySQL driver is not installed ({cause}); pip install 'sb3_hgrn[mysql]' "
+            "installs PyMySQL, the driver of mysql+pymysql:// URLs."
         )
     return f"the database driver the URL names is not installed ({cause}); install it with pip."
 

@@ -1,7 +1,8 @@
-"""``sb3-hgrn tune`` workers sharing one study through a real PostgreSQL server.
+"""``sb3-hgrn tune`` workers sharing one study through a real database server: PostgreSQL and MariaDB
+(MySQL's protocol, through the PyMySQL driver of ``mysql+pymysql://`` URLs).
 
-The fixture starts a throwaway PostgreSQL cluster that listens on a Unix socket only, in a
-directory of its own; the workers are separate ``sb3-hgrn tune`` processes, as on separate machines.
+Each fixture starts a throwaway server that listens on a Unix socket only, in a directory of its own;
+the workers are separate ``sb3-hgrn tune`` processes, as on separate machines.
 """
 
 import glob
@@ -27,7 +28,7 @@ WORKER = [sys.executable, "-m", "sb3_hgrn", "tune", *TOY, "--verbose", "0"]
 WORKER += "--timesteps 300 --eval-freq 150 --eval-episodes 1 --env-param n_agents=5 --pruner none".split()
 
 
-def server_binaries() -> tuple[str, str] | None:
+def postgres_binaries() -> tuple[str, str] | None:
     """``initdb`` and ``pg_ctl`` from ``PATH`` or the newest ``/usr/lib/postgresql/*/bin``; ``None``
     when no directory has both."""
     for path in [None, *sorted(glob.glob("/usr/lib/postgresql/*/bin"), reverse=True)]:
@@ -37,18 +38,28 @@ def server_binaries() -> tuple[str, str] | None:
     return None
 
 
-def server_user() -> dict:
-    """``subprocess`` arguments running the server's commands as a user it accepts: PostgreSQL refuses
-    to run as root, so under root they run as ``postgres`` (or ``nobody``); otherwise as this user."""
+def server_user(names: tuple[str, ...]) -> dict:
+    """``subprocess`` arguments running a server's commands as a user it accepts: PostgreSQL and
+    MariaDB refuse to run as root, so under root they run as the first of ``names`` that exists;
+    otherwise as this user."""
     if os.geteuid() != 0:
         return {}
-    for name in ("postgres", "nobody"):
+    for name in names:
         try:
             entry = pwd.getpwnam(name)
         except KeyError:
             continue
         return {"user": entry.pw_uid, "group": entry.pw_gid, "extra_groups": []}
-    pytest.skip("PostgreSQL refuses to run as root, and there is no postgres or nobody user to run it as")
+    pytest.skip(f"the server refuses to run as root, and none of the users {', '.join(names)} exists")
+
+
+def server_root(as_user: dict, prefix: str) -> Path:
+    """A new directory for a server's files, owned by the user it runs as. Not under pytest's temporary
+    directory, which only its owner may enter."""
+    root = Path(tempfile.mkdtemp(prefix=prefix))
+    if as_user:
+        os.chown(root, as_user["user"], as_user["group"])
+    return root
 
 
 def free_port() -> int:
@@ -89,15 +100,12 @@ def postgres():
     """A PostgreSQL server started for this module in a directory of its own, stopped after it."""
     pytest.importorskip("optuna")
     pytest.importorskip("psycopg", reason="no PostgreSQL driver: pip install 'sb3_hgrn[postgres]'")
-    binaries = server_binaries()
+    binaries = postgres_binaries()
     if binaries is None:
         pytest.skip("no PostgreSQL server binaries (initdb, pg_ctl) on PATH or in /usr/lib/postgresql/*/bin")
     initdb, pg_ctl = binaries
-    as_user = server_user()
-    # Not under pytest's temporary directory, which only its owner may enter.
-    root = Path(tempfile.mkdtemp(prefix="sb3_hgrn_pg_"))
-    if as_user:
-        os.chown(root, as_user["user"], as_user["group"])
+    as_user = server_user(("postgres", "nobody"))
+    root = server_root(as_user, "sb3_hgrn_pg_")
     data, log, port = root / "data", root / "server.log", free_port()
     options = f"-k {root} -p {port} -c listen_addresses='' -c fsync=off"
     try:
@@ -119,6 +127,77 @@ def postgres():
         shutil.rmtree(root, ignore_errors=True)
 
 
+def mariadb_binaries() -> tuple[str, str] | None:
+    """``mariadb-install-db`` and ``mariadbd`` from ``PATH`` or ``/usr/sbin`` and ``/usr/bin``;
+    ``None`` when either is missing."""
+    path = os.pathsep.join([os.environ.get("PATH", ""), "/usr/sbin", "/usr/bin"])
+    install_db, server = shutil.which("mariadb-install-db", path=path), shutil.which("mariadbd", path=path)
+    return (install_db, server) if install_db and server else None
+
+
+class MariaDBServer:
+    """A MariaDB server of the tests, reached through the Unix socket ``socket``."""
+
+    def __init__(self, socket_path: Path):
+        self.socket = socket_path
+
+    def connect(self):
+        import pymysql
+
+        return pymysql.connect(unix_socket=str(self.socket), user="root", autocommit=True)
+
+    def new_database(self, name: str) -> str:
+        """Create the empty database ``name``; its SQLAlchemy URL."""
+        with self.connect() as db, db.cursor() as cursor:
+            cursor.execute(f"CREATE DATABASE {name}")
+        return f"mysql+pymysql://root@/{name}?unix_socket={self.socket}"
+
+
+@pytest.fixture(scope="module")
+def mariadb():
+    """A MariaDB server started for this module in a directory of its own, stopped after it."""
+    pytest.importorskip("optuna")
+    pytest.importorskip("pymysql", reason="no MySQL driver: pip install 'sb3_hgrn[mysql]'")
+    binaries = mariadb_binaries()
+    if binaries is None:
+        pytest.skip("no MariaDB server binaries (mariadb-install-db, mariadbd) on PATH or in /usr/sbin")
+    install_db, server_binary = binaries
+    as_user = server_user(("mysql", "nobody"))
+    root = server_root(as_user, "sb3_hgrn_mariadb_")
+    data, log = root / "data", root / "server.log"
+    user = ["--user=" + pwd.getpwuid(as_user["user"]).pw_name] if as_user else []
+    server = None
+    try:
+        init = [install_db, "--no-defaults", f"--datadir={data}", "--auth-root-authentication-method=normal"]
+        run_server_command([*init, "--skip-test-db", *user], as_user, root)
+        options = [f"--datadir={data}", f"--socket={root / 'server.sock'}", f"--log-error={log}"]
+        options += ["--skip-networking", f"--pid-file={root / 'server.pid'}"]
+        options += ["--innodb-flush-log-at-trx-commit=0"]
+        server = subprocess.Popen([server_binary, "--no-defaults", *options, *user], cwd=root, **as_user)
+        database = MariaDBServer(root / "server.sock")
+        deadline = time.monotonic() + 60
+        while True:  # mariadbd has no "wait until ready" flag: connect until it answers
+            try:
+                database.connect().close()
+                break
+            except Exception:
+                if server.poll() is not None or time.monotonic() > deadline:
+                    pytest.fail(f"mariadbd did not start:\n{log.read_text() if log.exists() else ''}")
+                time.sleep(0.2)
+        yield database
+    finally:
+        if server is not None and server.poll() is None:
+            server.terminate()
+            server.wait(timeout=60)
+        shutil.rmtree(root, ignore_errors=True)
+
+
+@pytest.fixture(params=["postgres", "mariadb"])
+def database(request):
+    """Each test server in turn (PostgreSQL, then MariaDB)."""
+    return request.getfixturevalue(request.param)
+
+
 def start_worker(args: list[str]) -> subprocess.Popen:
     """An ``sb3-hgrn tune`` process with one torch thread."""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
@@ -133,17 +212,17 @@ def finish(worker: subprocess.Popen) -> tuple[int, str, str]:
     return worker.returncode, out, err
 
 
-def test_two_workers_share_a_study_in_postgres(postgres, tmp_path):
+def test_two_workers_share_a_study_in_one_database(database, tmp_path):
     import optuna
 
-    postgres_url = postgres.new_database("two_workers")
+    database_url = database.new_database("two_workers")
     space = tmp_path / "space.yml"
     space.write_text(SPACE, encoding="utf-8")
     shared = [
         "--search-space",
         str(space),
         "--storage",
-        postgres_url,
+        database_url,
         "--study-name",
         STUDY,
         "--n-trials",
@@ -159,12 +238,13 @@ def test_two_workers_share_a_study_in_postgres(postgres, tmp_path):
     for code, out, err in results:
         assert code == 0, f"a worker exited {code}:\n{out}\n{err}"
 
-    trials = optuna.load_study(storage=postgres_url, study_name=STUDY).get_trials()
+    trials = optuna.load_study(storage=database_url, study_name=STUDY).get_trials()
     spans = [(trial.datetime_start, trial.datetime_complete) for trial in trials]
     overlapping = any(a[0] < b[1] and b[0] < a[1] for i, a in enumerate(spans) for b in spans[i + 1 :])
     trained = sum((end - begin).total_seconds() for begin, end in spans)
     print(
-        f"\n2 workers, {len(trials)} trials in PostgreSQL: {wall:.1f} s wall, {trained:.1f} s in trials, "
+        f"\n2 workers, {len(trials)} trials in {type(database).__name__}: {wall:.1f} s wall, "
+        f"{trained:.1f} s in trials, "
         f"trials of both workers ran at once: {overlapping}"
     )
     assert [trial.state for trial in trials] == [optuna.trial.TrialState.COMPLETE] * 4
@@ -185,8 +265,8 @@ def test_two_workers_share_a_study_in_postgres(postgres, tmp_path):
     assert (
         f"The study {STUDY!r}" in err and "created for another setup (timesteps, eval_episodes differ)" in err
     )
-    assert postgres_url.split("?")[0] in err
-    assert len(optuna.load_study(storage=postgres_url, study_name=STUDY).get_trials()) == 4
+    assert database_url.split("?")[0] in err
+    assert len(optuna.load_study(storage=database_url, study_name=STUDY).get_trials()) == 4
 
 
 def open_at_once(setup, url: str, barrier, errors) -> None:
@@ -205,12 +285,12 @@ def open_at_once(setup, url: str, barrier, errors) -> None:
         errors.put(f"{type(error).__name__}: {error}")
 
 
-def test_workers_opening_a_new_database_at_once_all_join_one_study(postgres):
+def test_workers_opening_a_new_database_at_once_all_join_one_study(database):
     import optuna
 
     from sb3_hgrn.experiments.tune import SETUP_ATTR, TuneSetup, load_search_space
 
-    url = postgres.new_database("at_once")
+    url = database.new_database("at_once")
     setup = TuneSetup("surviving_v0", "soft_hgrn", "ci", 0, load_search_space("soft_hgrn"))
     context = multiprocessing.get_context("spawn")
     barrier, errors = context.Barrier(2), context.Queue()
@@ -226,14 +306,21 @@ def test_workers_opening_a_new_database_at_once_all_join_one_study(postgres):
     assert studies[0].user_attrs[SETUP_ATTR] == setup.describe()
 
 
-def test_a_missing_driver_names_the_extra(tmp_path, capsys, monkeypatch):
+@pytest.mark.parametrize(
+    "driver, url, database, extra",
+    [
+        ("psycopg", "postgresql+psycopg://postgres@/optuna?host={tmp}", "PostgreSQL", "postgres"),
+        ("pymysql", "mysql+pymysql://root@/optuna?unix_socket={tmp}/server.sock", "MySQL", "mysql"),
+    ],
+)
+def test_a_missing_driver_names_the_extra(driver, url, database, extra, tmp_path, capsys, monkeypatch):
     pytest.importorskip("optuna")
-    monkeypatch.setitem(sys.modules, "psycopg", None)  # its import fails, as when it is not installed
-    url = f"postgresql+psycopg://postgres@/optuna?host={tmp_path}"
+    monkeypatch.setitem(sys.modules, driver, None)  # its import fails, as when it is not installed
+    url = url.format(tmp=tmp_path)
     with pytest.raises(SystemExit) as exit_info:
         main(["tune", *TOY, "--n-trials", "1", "--storage", url, "--folder", str(tmp_path / "tune")])
     assert exit_info.value.code == 2
     err = capsys.readouterr().err
-    assert "Cannot open the Optuna storage postgresql+psycopg://postgres@/optuna" in err
-    assert "the PostgreSQL driver is not installed" in err and "pip install 'sb3_hgrn[postgres]'" in err
+    assert f"Cannot open the Optuna storage {url.split('?')[0]}" in err
+    assert f"the {database} driver is not installed" in err and f"pip install 'sb3_hgrn[{extra}]'" in err
     assert not (tmp_path / "tune").exists()
