@@ -53,13 +53,20 @@ def server_user(names: tuple[str, ...]) -> dict:
     pytest.skip(f"the server refuses to run as root, and none of the users {', '.join(names)} exists")
 
 
-def server_root(as_user: dict, prefix: str) -> Path:
-    """A new directory for a server's files, owned by the user it runs as. Not under pytest's temporary
+def prepare_server(driver: str, extra: str, binaries, missing: str, users: tuple[str, ...]):
+    """Skip unless Optuna, the Python ``driver`` (of the ``extra``) and the server ``binaries`` are
+    there (``missing`` names them); the binaries, the ``subprocess`` arguments of the user the server
+    runs as, and a new directory for its files that this user owns. Not under pytest's temporary
     directory, which only its owner may enter."""
-    root = Path(tempfile.mkdtemp(prefix=prefix))
+    pytest.importorskip("optuna")
+    pytest.importorskip(driver, reason=f"no {driver} driver: pip install 'sb3_hgrn[{extra}]'")
+    if binaries is None:
+        pytest.skip(f"no server binaries ({missing})")
+    as_user = server_user(users)
+    root = Path(tempfile.mkdtemp(prefix=f"sb3_hgrn_{extra}_"))
     if as_user:
         os.chown(root, as_user["user"], as_user["group"])
-    return root
+    return binaries, as_user, root
 
 
 def free_port() -> int:
@@ -98,14 +105,11 @@ class PostgresServer:
 @pytest.fixture(scope="module")
 def postgres():
     """A PostgreSQL server started for this module in a directory of its own, stopped after it."""
-    pytest.importorskip("optuna")
-    pytest.importorskip("psycopg", reason="no PostgreSQL driver: pip install 'sb3_hgrn[postgres]'")
+    missing = "initdb, pg_ctl on PATH or in /usr/lib/postgresql/*/bin"
     binaries = postgres_binaries()
-    if binaries is None:
-        pytest.skip("no PostgreSQL server binaries (initdb, pg_ctl) on PATH or in /usr/lib/postgresql/*/bin")
-    initdb, pg_ctl = binaries
-    as_user = server_user(("postgres", "nobody"))
-    root = server_root(as_user, "sb3_hgrn_pg_")
+    (initdb, pg_ctl), as_user, root = prepare_server(
+        "psycopg", "postgres", binaries, missing, ("postgres", "nobody")
+    )
     data, log, port = root / "data", root / "server.log", free_port()
     options = f"-k {root} -p {port} -c listen_addresses='' -c fsync=off"
     try:
@@ -156,14 +160,11 @@ class MariaDBServer:
 @pytest.fixture(scope="module")
 def mariadb():
     """A MariaDB server started for this module in a directory of its own, stopped after it."""
-    pytest.importorskip("optuna")
-    pytest.importorskip("pymysql", reason="no MySQL driver: pip install 'sb3_hgrn[mysql]'")
+    missing = "mariadb-install-db, mariadbd on PATH or in /usr/sbin"
     binaries = mariadb_binaries()
-    if binaries is None:
-        pytest.skip("no MariaDB server binaries (mariadb-install-db, mariadbd) on PATH or in /usr/sbin")
-    install_db, server_binary = binaries
-    as_user = server_user(("mysql", "nobody"))
-    root = server_root(as_user, "sb3_hgrn_mariadb_")
+    (install_db, server_binary), as_user, root = prepare_server(
+        "pymysql", "mysql", binaries, missing, ("mysql", "nobody")
+    )
     data, log = root / "data", root / "server.log"
     user = ["--user=" + pwd.getpwuid(as_user["user"]).pw_name] if as_user else []
     server = None
