@@ -449,8 +449,7 @@ def open_storage(url: str) -> optuna.storages.RDBStorage:
 def _lost_table_race(error: Exception) -> bool:
     """Whether ``error`` may come from creating Optuna's tables while another worker creates them: an
     integrity or programming error (PostgreSQL's duplicate type or key), or MySQL's "table already
-    exists" (error 1050, an operational error there). A fault of any other kind repeats on the last try
-    and is raised from there."""
+    exists" (error 1050, an operational error there). Any other fault is raised at once."""
     from sqlalchemy.exc import IntegrityError, OperationalError, ProgrammingError
 
     if isinstance(error, (IntegrityError, ProgrammingError)):
