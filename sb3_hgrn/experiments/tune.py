@@ -476,7 +476,7 @@ def missing_driver(url: str, error: ImportError) -> str:
             f"the PostgreSQL driver is not installed ({cause}); pip install 'sb3_hgrn[postgres]' "
             "installs psycopg 3, the driver of postgresql+psycopg:// URLs."
         )
-    if url.startswith("mysql") or url.startswith("mariadb"):
+    if url.startswith(("mysql", "mariadb")):
         return (
             f"the MySQL driver is not installed ({cause}); pip install 'sb3_hgrn[mysql]' "
             "installs PyMySQL, the driver of mysql+pymysql:// URLs."
