@@ -687,6 +687,23 @@ def test_one_graph_batch_serves_networks_of_any_head_count():
     assert sorted(graph._patterns) == [1, 2, 4]
 
 
+def test_the_transposed_pattern_is_built_for_gradients_only():
+    """Acting and target networks (no gradient) never pay for the transposed pattern; a backward
+    pass builds it once and every later one reuses it."""
+    torch.manual_seed(0)
+    net = HGRN(obs_dim=5, n_actions=4, hidden_dim=16)
+    obs, neighbors, hidden = inputs(net, max_neighbors=5)
+    graph = GraphBatch(neighbors)
+    with torch.no_grad():
+        net(obs, graph, hidden)
+    pattern = graph.pattern(4)
+    assert "_transposed" not in vars(pattern)
+    net(obs, graph, hidden)[0].sum().backward()
+    built = vars(pattern)["_transposed"]
+    net(obs, graph, hidden)[0].sum().backward()
+    assert vars(pattern)["_transposed"] is built
+
+
 def test_hgrn_rejects_a_graph_batch_that_does_not_fit():
     net = HGRN(obs_dim=5, n_actions=4, hidden_dim=8, group_n_actions=[4, 2])
     obs, hidden, groups = torch.randn(3, 4, 5), torch.randn(3, 4, 8), GROUPS.repeat(3, 1)

@@ -15,10 +15,10 @@ formed.
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import warnings
 from collections.abc import Callable, Sequence
-from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -100,56 +100,71 @@ def neighbor_entries(neighbors: Tensor, n_agents: int) -> tuple[Tensor, Tensor, 
     return targets, positions.gather(1, order), mask.gather(1, order)
 
 
-class _Pattern(NamedTuple):
+class _Pattern:
     """Sparsity pattern of the attention of one neighbour structure as CSR index tensors.
 
     Rows are ``(agent, head)`` pairs ``r * heads + h``, columns ``(target, head)`` pairs
     ``t * heads + h`` over the ``n_targets`` targets of :func:`neighbor_entries` (``rows``, or with
     one graph ``rows + E``: the agents, then the dummy targets): a ``(rows * heads, n_targets *
     heads)`` matrix with exactly ``E`` entries per row, their columns sorted and distinct, so
-    ``O(rows * heads * E)`` entries are stored. With dummy targets dense right-hand operands get zero
-    rows for them (:func:`_padded`) and products with the transposed matrix keep their first
-    ``rows * heads`` rows.
-    ``transpose`` maps the values of the transposed matrix (rows by target, columns by source row)
-    to their position in the values of the matrix itself.
+    ``O(rows * heads * E)`` entries are stored; the values of a matrix on it are laid out as
+    ``(rows, heads, E)``. With dummy targets dense right-hand operands get zero rows for them
+    (:func:`_padded`) and products with the transposed matrix keep their first ``rows * heads`` rows.
+
+    The transposed pattern (rows by target, columns by source row) is needed only for gradients, so
+    it is built on first use, once: ``crow_t`` and ``col_t`` are its CSR index tensors and
+    ``transpose`` maps its values to their position in the values of the matrix itself. Acting and
+    target networks, which run without gradients, never build it.
+
+    :param targets: ``(rows, E)`` entry targets below ``n_targets`` (see :func:`neighbor_entries`).
+    :param heads: attention heads.
+    :param n_targets: number of targets.
     """
 
-    crow: Tensor
-    col: Tensor
-    crow_t: Tensor
-    col_t: Tensor
-    transpose: Tensor
-    shape: tuple[int, int]
+    def __init__(self, targets: Tensor, heads: int, n_targets: int) -> None:
+        rows, n_entries = targets.shape
+        self.targets, self.heads, self.n_targets = targets, heads, n_targets
+        self._head = torch.arange(heads, device=targets.device)
+        self.col = (targets.unsqueeze(1) * heads + self._head.view(1, heads, 1)).reshape(-1)
+        self.crow = torch.arange(0, rows * heads * n_entries + 1, n_entries, device=targets.device)
+        self.shape = (rows * heads, n_targets * heads)
 
+    @functools.cached_property
+    def _transposed(self) -> tuple[Tensor, Tensor, Tensor]:
+        """``(crow_t, col_t, transpose)``, built once."""
+        heads, head, n_entries = self.heads, self._head, self.targets.shape[1]
+        device = self.targets.device
+        target = self.targets.reshape(-1)  # entry e = r * E + k points at target[e]
+        order = torch.argsort(target, stable=True)  # by target, then by source row
+        count = torch.zeros(self.n_targets, dtype=torch.long, device=device).index_add_(
+            0, target, torch.ones_like(target)
+        )
+        first = torch.cumsum(count, 0) - count
+        sorted_target = target[order]
+        # Transposed row (t, h) holds the count[t] entries pointing at t, by increasing source row.
+        dest = (
+            ((heads - 1) * first[sorted_target] + torch.arange(order.numel(), device=device)).unsqueeze(1)
+            + head * count[sorted_target].unsqueeze(1)
+        ).reshape(-1)
+        source_row = (order // n_entries * heads).unsqueeze(1) + head
+        source = (source_row * n_entries + (order % n_entries).unsqueeze(1)).reshape(-1)
+        transpose = torch.empty_like(dest).scatter_(0, dest, source)
+        col_t = torch.empty_like(dest).scatter_(0, dest, source_row.reshape(-1))
+        crow_t = torch.zeros(self.n_targets * heads + 1, dtype=torch.long, device=device)
+        torch.cumsum(count.unsqueeze(1).expand(self.n_targets, heads).reshape(-1), 0, out=crow_t[1:])
+        return crow_t, col_t, transpose
 
-def _attention_pattern(targets: Tensor, heads: int, n_targets: int) -> _Pattern:
-    """Build the CSR pattern of attention over ``targets`` ``(rows, E)`` below ``n_targets`` (see
-    :func:`neighbor_entries`) for ``heads`` heads; the values of a matrix on it are laid out as
-    ``(rows, heads, E)``."""
-    rows, n_entries = targets.shape
-    device = targets.device
-    head = torch.arange(heads, device=device)
-    col = (targets.unsqueeze(1) * heads + head.view(1, heads, 1)).reshape(-1)
-    crow = torch.arange(0, rows * heads * n_entries + 1, n_entries, device=device)
-    target = targets.reshape(-1)  # entry e = r * E + k points at target[e]
-    order = torch.argsort(target, stable=True)  # by target, then by source row
-    count = torch.zeros(n_targets, dtype=torch.long, device=device).index_add_(
-        0, target, torch.ones_like(target)
-    )
-    first = torch.cumsum(count, 0) - count
-    sorted_target = target[order]
-    # Transposed row (t, h) holds the count[t] entries pointing at t, by increasing source row.
-    dest = (
-        ((heads - 1) * first[sorted_target] + torch.arange(order.numel(), device=device)).unsqueeze(1)
-        + head * count[sorted_target].unsqueeze(1)
-    ).reshape(-1)
-    source_row = (order // n_entries * heads).unsqueeze(1) + head
-    source = (source_row * n_entries + (order % n_entries).unsqueeze(1)).reshape(-1)
-    transpose = torch.empty_like(dest).scatter_(0, dest, source)
-    col_t = torch.empty_like(dest).scatter_(0, dest, source_row.reshape(-1))
-    crow_t = torch.zeros(n_targets * heads + 1, dtype=torch.long, device=device)
-    torch.cumsum(count.unsqueeze(1).expand(n_targets, heads).reshape(-1), 0, out=crow_t[1:])
-    return _Pattern(crow, col, crow_t, col_t, transpose, (rows * heads, n_targets * heads))
+    @property
+    def crow_t(self) -> Tensor:
+        return self._transposed[0]
+
+    @property
+    def col_t(self) -> Tensor:
+        return self._transposed[1]
+
+    @property
+    def transpose(self) -> Tensor:
+        return self._transposed[2]
 
 
 def _sparse(crow: Tensor, col: Tensor, values: Tensor, shape: tuple[int, int]) -> Tensor:
@@ -329,7 +344,7 @@ class GraphBatch:
     def pattern(self, heads: int) -> _Pattern:
         """CSR pattern of the attention with ``heads`` heads (built once per head count)."""
         if heads not in self._patterns:
-            self._patterns[heads] = _attention_pattern(self.targets, heads, self.n_targets)
+            self._patterns[heads] = _Pattern(self.targets, heads, self.n_targets)
         return self._patterns[heads]
 
     def segments(self, across_groups: bool) -> list[Tensor]:
