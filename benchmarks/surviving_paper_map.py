@@ -93,6 +93,8 @@ def main() -> None:
         "--average-taus", type=float, nargs="*", default=[], help="also evaluate these averages"
     )
     args = parser.parse_args()
+    if args.final_episodes < 0:
+        parser.error(f"--final-episodes must be 0 or more, got {args.final_episodes}")
     th.set_num_threads(args.threads)
     env_kwargs = {**PAPER_MAP, **parse_assignments(args.env_param)}
     n_agents = env_kwargs["n_agents"]
