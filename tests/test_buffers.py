@@ -8,7 +8,7 @@ from sb3_hgrn.common.buffers import GraphReplayBuffer, smallest_index_dtype
 N_AGENTS, N_COPIES, STATE = 3, 2, 4
 
 
-def make_buffer(steps: int = 5) -> GraphReplayBuffer:
+def make_buffer(steps: int = 5, **kwargs) -> GraphReplayBuffer:
     obs_space = gym.spaces.Dict(
         {
             "obs": gym.spaces.Box(-1, 10, shape=(2,), dtype=np.int8),
@@ -18,7 +18,7 @@ def make_buffer(steps: int = 5) -> GraphReplayBuffer:
     n_envs = N_AGENTS * N_COPIES
     return GraphReplayBuffer(
         steps * n_envs, obs_space, gym.spaces.Discrete(5), device="cpu",
-        n_envs=n_envs, n_agents=N_AGENTS, state_dim=STATE, hidden_dtype="float32",
+        n_envs=n_envs, n_agents=N_AGENTS, state_dim=STATE, hidden_dtype="float32", **kwargs,
     )  # fmt: skip
 
 
@@ -74,6 +74,49 @@ def test_full_buffer_never_samples_the_overwritten_row():
     assert steps == {3.0, 4.0, 5.0, 6.0}
     batch = buffer.sample(400)
     np.testing.assert_array_equal(batch.next_hidden[:, 0, 0], batch.observations[:, 0, 0] + 1)
+
+
+def test_n_step_samples_sum_their_copys_steps_up_to_episode_ends():
+    """Steps 0-7, an episode starting at step 3, agent 0 of copy 0 terminating at step 5, agent 2 of
+    copy 1 joining at step 5, rewards 2 ** t: with n = 3 and gamma 0.5 every sample sums up to three
+    steps of its own episode, stopping after a termination in its copy, before a change of who is
+    alive and at the newest step."""
+    buffer = make_buffer(steps=10, n_steps=3, gamma=0.5)
+    for t in range(8):
+        data = step_data(t)
+        data["rewards"] = np.full(N_AGENTS * N_COPIES, 2.0**t, dtype=np.float32)
+        data["episode_starts"] = np.full(N_AGENTS * N_COPIES, t == 3)
+        data["terminated"][0] = t == 5
+        data["alive"] = np.ones(N_AGENTS * N_COPIES, dtype=bool)
+        data["alive"][2 * N_AGENTS - 1] = t >= 5
+        buffer.add(**data)
+    rows = np.tile(np.arange(8), 2)
+    copies = np.repeat(np.arange(2), 8)
+    batch = buffer._get_samples(rows, copies)
+    # last step summed per first step: episode 0-2 ends at 2; copy 0 stops after its termination at
+    # 5, copy 1 before agent 2 joins at 5
+    last = np.array([[2, 2, 2, 5, 5, 5, 7, 7], [2, 2, 2, 4, 4, 7, 7, 7]]).reshape(-1)
+    expected = [
+        sum(0.5 ** (k - t) * 2.0**k for k in range(t, end + 1)) for t, end in zip(rows, last, strict=True)
+    ]
+    np.testing.assert_allclose(batch.rewards, np.repeat(np.array(expected)[:, None], N_AGENTS, 1))
+    np.testing.assert_allclose(batch.discounts[:, 0], 0.5 ** (last - rows + 1.0))
+    np.testing.assert_array_equal(batch.next_observations[:, 0, 0], last + 100)
+    np.testing.assert_array_equal(batch.next_hidden[:, 0, 0], last + 1)
+    terminated = np.zeros((16, N_AGENTS))
+    terminated[3:6, 0] = 1  # copy 0's samples that end at step 5
+    np.testing.assert_array_equal(batch.terminated, terminated)
+    np.testing.assert_array_equal(batch.observations[:, 0, 0], rows)
+
+
+def test_one_step_samples_bootstrap_with_gamma():
+    buffer = make_buffer(gamma=0.9)
+    for t in range(3):
+        buffer.add(**step_data(t))
+    batch = buffer.sample(16)
+    np.testing.assert_allclose(batch.discounts, np.full((16, 1), 0.9, dtype=np.float32))
+    next_value = th.ones(16, N_AGENTS)
+    np.testing.assert_allclose(batch.bootstrapped(next_value), batch.rewards + 0.9, rtol=1e-6)
 
 
 def test_compact_storage_dtypes():

@@ -20,11 +20,14 @@ def test_bootstraps_delayed_rewards_and_stops_at_terminations(algorithm):
     assert greedy_return(model, lambda: InvestEnv(4)) == pytest.approx(4 * 2.2)
 
 
+@pytest.mark.parametrize("n_steps", [1, 3])
 @pytest.mark.parametrize("algorithm", ALGORITHMS)
-def test_bootstraps_at_time_limits(algorithm):
+def test_bootstraps_at_time_limits(algorithm, n_steps):
     """A truncated episode goes on in the values, so investing stays right on the last step: 1.5 per
-    agent. Treating the time limit as a termination consumes there (2.2)."""
-    model = train_on(algorithm, lambda: InvestEnv(4, time_limit=True), 6_000, gamma=0.8)
+    agent. Treating the time limit as a termination consumes there (2.2). With n-step returns a
+    return must also stop at the time limit and bootstrap from its final observation: summed on into
+    the next episode it fails."""
+    model = train_on(algorithm, lambda: InvestEnv(4, time_limit=True), 6_000, gamma=0.8, n_steps=n_steps)
     assert greedy_return(model, lambda: InvestEnv(4, time_limit=True)) == pytest.approx(4 * 1.5)
 
 

@@ -338,6 +338,8 @@ def small_env():
         ({"batch_size": 2.5}, "batch_size must be a positive integer"),
         ({"gamma": 2}, r"gamma must be a number in \[0, 1\], got 2"),
         ({"gamma": -0.1}, r"gamma must be a number in \[0, 1\]"),
+        ({"n_steps": 0}, "n_steps must be a positive integer .*, got 0"),
+        ({"n_steps": 2.0}, "n_steps must be a positive integer"),
         ({"buffer_size": -5}, "buffer_size must be a positive integer"),
         (
             {"buffer_size": 3},
@@ -415,6 +417,14 @@ def test_replay_buffer_round_trip_across_a_load(small_env, tmp_path):
     first = original.sample(8)
     np.random.seed(0)
     assert all((a == b).all() for a, b in zip(first[:-1], buffer.sample(8)[:-1], strict=True))
+
+
+def test_a_loaded_replay_buffer_samples_the_loading_models_returns(small_env, tmp_path):
+    SoftHGRN("GraphPolicy", small_env, batch_size=4).learn(50).save_replay_buffer(tmp_path / "buffer.pkl")
+    model = SoftHGRN("GraphPolicy", small_env, batch_size=4, n_steps=3, gamma=0.5)
+    model.load_replay_buffer(tmp_path / "buffer.pkl")
+    assert (model.replay_buffer.n_steps, model.replay_buffer.gamma) == (3, 0.5)
+    assert set(model.replay_buffer.sample(64).discounts[:, 0].tolist()) <= {0.5, 0.25, 0.125}
 
 
 def test_load_replay_buffer_of_another_agent_count_says_what_differs(small_env, tmp_path):

@@ -17,14 +17,20 @@ class GraphSamples(NamedTuple):
     observations: th.Tensor  # (batch, n_agents, *obs_shape) float32
     neighbors: th.Tensor  # (batch, n_agents, max_neighbors) int64, -1 = none
     actions: th.Tensor  # (batch, n_agents) int64
-    rewards: th.Tensor  # (batch, n_agents) float32
-    next_observations: th.Tensor  # (batch, n_agents, *obs_shape) float32
+    rewards: th.Tensor  # (batch, n_agents) float32, discounted sum over the sample's steps
+    next_observations: th.Tensor  # (batch, n_agents, *obs_shape) float32, after the last step
     next_neighbors: th.Tensor  # (batch, n_agents, max_neighbors) int64
     terminated: th.Tensor  # (batch, n_agents) float32, 1 where the episode really ended (not time-outs)
+    discounts: th.Tensor  # (batch, 1) float32, gamma ** (steps summed in rewards)
     alive: th.Tensor  # (batch, n_agents) float32, 1 where the agent lived when it acted, 0 for gone agents
     hidden: th.Tensor  # (batch, n_agents, state_dim) recurrent state fed in (zero at episode starts)
-    next_hidden: th.Tensor  # (batch, n_agents, state_dim) recurrent state produced by that step
+    next_hidden: th.Tensor  # (batch, n_agents, state_dim) recurrent state produced by the last step
     groups: th.Tensor | None  # (batch, n_agents) int64 group ids (None for one group)
+
+    def bootstrapped(self, next_value: th.Tensor) -> th.Tensor:
+        """The regression target ``rewards + discounts * (1 - terminated) * next_value`` ``(batch,
+        n_agents)`` from the state values ``(batch, n_agents)`` of the next observations."""
+        return self.rewards + self.discounts * (1.0 - self.terminated) * next_value
 
 
 def smallest_index_dtype(n_agents: int) -> np.dtype:
@@ -64,6 +70,15 @@ class GraphReplayBuffer(BaseBuffer):
     its agent was alive when it acted: the rows of agents that died or left before the step are
     kept (a graph keeps all its slots) but sampled with ``alive = 0``, for the losses to leave out.
 
+    With ``n_steps > 1`` a sample is an n-step transition (as SB3's ``NStepReplayBuffer``): its
+    rewards are the ``gamma``-discounted sum over up to ``n_steps`` consecutive steps of its copy and
+    its next observation and state those after the last of them, with ``discounts = gamma ** k`` for
+    the ``k`` steps summed. A sample stops early at the end of its episode (a termination or a time
+    limit), at the newest stored step, after a step where any agent of its copy terminated, and
+    before a step where the set of living agents changed, so every agent of a graph sums the same
+    steps and bootstraps from the same observation. The entropy terms of the soft value at the
+    skipped states are left out of the sum.
+
     :param buffer_size: capacity in agent-transitions.
     :param observation_space: the graph VecEnv's Dict space (keys ``obs`` and ``neighbors``).
     :param action_space: ``Discrete`` action space.
@@ -72,6 +87,8 @@ class GraphReplayBuffer(BaseBuffer):
     :param n_agents: agents per env copy.
     :param state_dim: width of the recurrent state (0 without recurrence).
     :param hidden_dtype: storage dtype of the recurrent state.
+    :param n_steps: steps summed per sample (1: one-step transitions).
+    :param gamma: discount of the summed rewards and of the bootstrap.
     """
 
     def __init__(
@@ -84,10 +101,14 @@ class GraphReplayBuffer(BaseBuffer):
         n_agents: int = 1,
         state_dim: int = 0,
         hidden_dtype: np.dtype | str = np.float16,
+        n_steps: int = 1,
+        gamma: float = 0.99,
     ):
         super().__init__(buffer_size, observation_space, action_space, device, n_envs=n_envs)
         if n_envs % n_agents != 0:
             raise ValueError(f"n_envs={n_envs} is not a multiple of n_agents={n_agents}.")
+        self.n_steps = n_steps
+        self.gamma = gamma
         self.buffer_size = max(buffer_size // n_envs, 2)
         self.n_agents = n_agents
         self.n_copies = n_envs // n_agents
@@ -179,6 +200,8 @@ class GraphReplayBuffer(BaseBuffer):
         self.__dict__.update(state)
         if "alive" not in state:
             self.alive = np.ones(self.rewards.shape, dtype=bool)
+        self.__dict__.setdefault("n_steps", 1)
+        self.__dict__.setdefault("gamma", 0.99)
 
     def sample(self, batch_size: int, env=None) -> GraphSamples:
         """Draw ``batch_size`` graphs uniformly from the stored steps and copies."""
@@ -194,8 +217,30 @@ class GraphReplayBuffer(BaseBuffer):
         copies = np.random.randint(0, self.n_copies, size=batch_size)
         return self._get_samples(rows, copies)
 
+    def _last_steps(self, rows: np.ndarray, copies: np.ndarray) -> np.ndarray:
+        """Offset ``(batch,)`` from each sample's first row to the last row it sums (0 .. n_steps - 1)."""
+        offsets = np.arange(1, self.n_steps)
+        later_rows = (rows[:, None] + offsets) % self.buffer_size  # (batch, n_steps - 1)
+        earlier_rows = (later_rows - 1) % self.buffer_size
+        first_alive = self.alive[rows, copies][:, None]  # (batch, 1, n_agents)
+        copies = copies[:, None]
+        stored_after = (self.pos - 1 - rows) % self.buffer_size  # rows stored after the first
+        continues = (
+            (offsets <= stored_after[:, None])
+            & ~self.episode_starts[later_rows, copies]
+            & ~self.terminated[earlier_rows, copies].any(axis=-1)
+            & (self.alive[later_rows, copies] == first_alive).all(axis=-1)
+        )  # (batch, n_steps - 1): the step at that offset belongs to the sample if all before it do
+        return np.cumprod(continues, axis=1).sum(axis=1)
+
     def _get_samples(self, rows: np.ndarray, copies: np.ndarray, env=None) -> GraphSamples:
-        next_rows = (rows + 1) % self.buffer_size
+        last = self._last_steps(rows, copies)
+        window = np.arange(self.n_steps)
+        window_rows = (rows[:, None] + window) % self.buffer_size  # (batch, n_steps)
+        weights = (self.gamma**window * (window <= last[:, None])).astype(np.float32)
+        rewards = np.einsum("bk,bka->ba", weights, self.rewards[window_rows, copies[:, None]])
+        last_rows = (rows + last) % self.buffer_size
+        next_rows = (last_rows + 1) % self.buffer_size
         keep = ~self.episode_starts[rows, copies]
         hidden = self.hidden[rows, copies] * keep[:, None, None].astype(self.hidden.dtype)
         device = self.device
@@ -210,10 +255,11 @@ class GraphReplayBuffer(BaseBuffer):
             observations=floats(self.observations[rows, copies]),
             neighbors=longs(self.neighbors[rows, copies]),
             actions=longs(self.actions[rows, copies]),
-            rewards=floats(self.rewards[rows, copies]),
-            next_observations=floats(self.next_observations[rows, copies]),
-            next_neighbors=longs(self.next_neighbors[rows, copies]),
-            terminated=floats(self.terminated[rows, copies]),
+            rewards=floats(rewards),
+            next_observations=floats(self.next_observations[last_rows, copies]),
+            next_neighbors=longs(self.next_neighbors[last_rows, copies]),
+            terminated=floats(self.terminated[last_rows, copies]),
+            discounts=floats(self.gamma ** (last[:, None] + 1.0)),
             alive=floats(self.alive[rows, copies]),
             hidden=floats(hidden),
             next_hidden=floats(self.hidden[next_rows, copies]),

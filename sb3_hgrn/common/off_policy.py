@@ -84,13 +84,14 @@ def check_algorithm_arguments(
     gamma: Any,
     train_freq: Any,
     n_agents: int | None = None,
+    n_steps: Any = 1,
 ) -> None:
     """Raise a ``ValueError`` naming the argument unless the arguments make a model that trains.
 
     ``learning_rate`` is a positive number or a schedule (a callable), ``batch_size`` a positive
-    integer (graphs), ``0 <= gamma <= 1``, ``train_freq`` at least 1 (vec-steps, or ``(n, unit)``) and
-    ``buffer_size`` an integer of agent-transitions that holds at least one batch of graphs
-    (``batch_size * n_agents``, when the env and so ``n_agents`` is known).
+    integer (graphs), ``0 <= gamma <= 1``, ``n_steps`` a positive integer, ``train_freq`` at least 1
+    (vec-steps, or ``(n, unit)``) and ``buffer_size`` an integer of agent-transitions that holds at
+    least one batch of graphs (``batch_size * n_agents``, when the env and so ``n_agents`` is known).
     """
     if not callable(learning_rate) and not (_is_number(learning_rate) and learning_rate > 0):
         raise ValueError(
@@ -102,6 +103,8 @@ def check_algorithm_arguments(
         )
     if not _is_number(gamma) or not 0 <= gamma <= 1:
         raise ValueError(f"gamma must be a number in [0, 1], got {gamma!r}.")
+    if not _is_integer(n_steps) or n_steps < 1:
+        raise ValueError(f"n_steps must be a positive integer (steps per return), got {n_steps!r}.")
     frequency = train_freq[0] if isinstance(train_freq, tuple | list) and train_freq else train_freq
     if not _is_integer(frequency) or frequency < 1:
         raise ValueError(
@@ -190,6 +193,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         batch_size: int,
         tau: float,
         gamma: float,
+        n_steps: int,
         train_freq: int | tuple[int, str],
         gradient_steps: int,
         target_update_interval: int,
@@ -221,6 +225,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
             gamma,
             train_freq,
             env.n_agents if env is not None else None,
+            n_steps,
         )
         if exploration_initial_eps is None:
             exploration_initial_eps = 0.0 if stochastic else 1.0
@@ -237,6 +242,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
             gamma=gamma,
             train_freq=train_freq,
             gradient_steps=gradient_steps,
+            n_steps=n_steps,
             policy_kwargs={**(policy_kwargs or {}), "stochastic": stochastic},
             stats_window_size=stats_window_size,
             tensorboard_log=tensorboard_log,
@@ -332,6 +338,8 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
             n_agents=self.n_agents,
             state_dim=self.policy.state_dim,
             hidden_dtype=self.hidden_dtype,
+            n_steps=self.n_steps,
+            gamma=self.gamma,
         )
 
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
@@ -422,6 +430,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
                 f"The replay buffer in {path} does not fit this model: {', '.join(differences)}."
             )
         buffer.device = self.device
+        buffer.n_steps, buffer.gamma = self.n_steps, self.gamma  # the model's returns, not the saver's
         self.replay_buffer = buffer
 
     def get_training_state(self) -> dict[str, Any]:
@@ -561,19 +570,19 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         ``gradient_steps=-1`` then takes one gradient step per graph, as ``batch_size`` counts graphs.
         """
         self.policy.set_training_mode(False)
-        n_steps, n_episodes = 0, 0
+        vec_steps, n_episodes = 0, 0
         n_copies = env.num_envs // self.n_agents
         callback.on_rollout_start()
-        while should_collect_more_steps(train_freq, n_steps, n_episodes):
+        while should_collect_more_steps(train_freq, vec_steps, n_episodes):
             hidden_in = self._last_hidden * (1.0 - self._last_episode_starts)[:, None]
             actions, next_hidden = self._choose_actions(hidden_in.astype(np.float32), learning_starts)
             new_obs, rewards, dones, infos = env.step(actions)
             check_rewards(rewards, self.n_agents, f"at agent-step {self.num_timesteps + env.num_envs}")
             self.num_timesteps += env.num_envs
-            n_steps += 1
+            vec_steps += 1
             callback.update_locals(locals())
             if not callback.on_step():
-                return RolloutReturn(n_steps * n_copies, n_episodes, continue_training=False)
+                return RolloutReturn(vec_steps * n_copies, n_episodes, continue_training=False)
 
             next_obs = self._final_observations(new_obs, dones, infos)
             replay_buffer.add(
@@ -592,7 +601,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
                 if log_interval is not None and self._episode_num % log_interval == 0:
                     self.dump_logs()
         callback.on_rollout_end()
-        return RolloutReturn(n_steps * n_copies, n_episodes, continue_training=True)
+        return RolloutReturn(vec_steps * n_copies, n_episodes, continue_training=True)
 
     def learn(
         self,

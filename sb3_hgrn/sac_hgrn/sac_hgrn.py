@@ -40,8 +40,9 @@ class SACHGRN(GraphOffPolicyAlgorithm):
     """SAC-HGRN (discrete soft actor-critic with HGRN actor and critics, Ye et al., AAAI 2022).
 
     Critic target: ``r + gamma * (1 - terminated) * sum_a pi(a|o') (Q_target(o', a) - alpha log pi(a|o'))``
-    (the minimum over critics when there are several). Every actor loss has the same minimiser, the
-    Boltzmann policy ``softmax(Q(o, .) / alpha)``:
+    (the minimum over critics when there are several; with ``n_steps > 1`` the discounted sum of
+    ``n_steps`` rewards and ``gamma ** n_steps``, as in SoftHGRN). Every actor loss has the same
+    minimiser, the Boltzmann policy ``softmax(Q(o, .) / alpha)``:
 
     - ``"boltzmann"`` (default): ``KL(softmax(Q(o, .) / alpha) || pi(.|o))``, whose gradient on the
       logits is ``pi - softmax(Q / alpha)`` (see :func:`boltzmann_divergence`);
@@ -99,6 +100,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
         batch_size: int = 32,
         tau: float = 1.0,
         gamma: float = 0.95,
+        n_steps: int = 1,
         train_freq: int | tuple[int, str] = 4,
         gradient_steps: int = 1,
         target_update_interval: int = 5,
@@ -144,6 +146,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
             batch_size=batch_size,
             tau=tau,
             gamma=gamma,
+            n_steps=n_steps,
             train_freq=train_freq,
             gradient_steps=gradient_steps,
             target_update_interval=target_update_interval,
@@ -229,7 +232,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
                     ]
                 ).amin(dim=0)
                 next_value = self._next_value(next_q, next_logits, alpha)
-                target_q = batch.rewards + self.gamma * (1.0 - batch.terminated) * next_value
+                target_q = batch.bootstrapped(next_value)
 
             q_values = [
                 critic(batch.observations, graph, state)[0]

@@ -25,7 +25,8 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
     """Soft-HGRN (soft Q-learning with HGRN, Ye et al., AAAI 2022).
 
     The policy is ``softmax(Q / alpha)``; the critic regresses on
-    ``r + gamma * (1 - terminated) * alpha * logsumexp(Q_target(o', .) / alpha)`` and alpha is
+    ``r + gamma * (1 - terminated) * alpha * logsumexp(Q_target(o', .) / alpha)`` (with
+    ``n_steps > 1``, the discounted sum of ``n_steps`` rewards and ``gamma ** n_steps``) and alpha is
     learned so that the mean action entropy tracks ``target_entropy_ratio * log(n_actions)``.
     Losses and entropies are means over the agents alive at their step (see
     :class:`~sb3_hgrn.common.vec_env.GraphVecEnv` for agents that die).
@@ -44,6 +45,8 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
     :param batch_size: graphs per gradient step.
     :param tau: target update coefficient (1.0 = hard copy).
     :param gamma: discount factor.
+    :param n_steps: rewards summed per target before bootstrapping (n-step returns, as SB3's
+        ``n_steps``; they stop at episode ends).
     :param train_freq: train every ``train_freq`` vec-steps.
     :param gradient_steps: gradient steps per training round.
     :param target_update_interval: gradient steps between target updates.
@@ -77,6 +80,7 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
         batch_size: int = 32,
         tau: float = 1.0,
         gamma: float = 0.95,
+        n_steps: int = 1,
         train_freq: int | tuple[int, str] = 4,
         gradient_steps: int = 1,
         target_update_interval: int = 5,
@@ -108,6 +112,7 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
             batch_size=batch_size,
             tau=tau,
             gamma=gamma,
+            n_steps=n_steps,
             train_freq=train_freq,
             gradient_steps=gradient_steps,
             target_update_interval=target_update_interval,
@@ -151,9 +156,7 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
             with th.no_grad():
                 next_graph = self.policy.graph_batch(batch.next_neighbors, batch.groups)
                 next_q, _ = q_net_target(batch.next_observations, next_graph, batch.next_hidden)
-                target_q = batch.rewards + self.gamma * (1.0 - batch.terminated) * self._next_value(
-                    next_q, alpha
-                )
+                target_q = batch.bootstrapped(self._next_value(next_q, alpha))
             graph = self.policy.graph_batch(batch.neighbors, batch.groups)
             q_values, _ = q_net(batch.observations, graph, batch.hidden)
             taken_q = q_values.gather(-1, batch.actions.unsqueeze(-1)).squeeze(-1)
