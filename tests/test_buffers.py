@@ -79,8 +79,8 @@ def test_full_buffer_never_samples_the_overwritten_row():
 def test_n_step_samples_sum_their_copys_steps_up_to_episode_ends():
     """Steps 0-7, an episode starting at step 3, agent 0 of copy 0 terminating at step 5, agent 2 of
     copy 1 joining at step 5, rewards 2 ** t: with n = 3 and gamma 0.5 every sample sums up to three
-    steps of its own episode, stopping after a termination in its copy, before a change of who is
-    alive and at the newest step."""
+    steps of its own episode, stopping after a termination in its copy and before a change of who is
+    alive."""
     buffer = make_buffer(steps=10, n_steps=3, gamma=0.5)
     for t in range(8):
         data = step_data(t)
@@ -107,6 +107,18 @@ def test_n_step_samples_sum_their_copys_steps_up_to_episode_ends():
     terminated[3:6, 0] = 1  # copy 0's samples that end at step 5
     np.testing.assert_array_equal(batch.terminated, terminated)
     np.testing.assert_array_equal(batch.observations[:, 0, 0], rows)
+
+
+def test_n_step_samples_of_a_full_buffer_stop_at_the_newest_step():
+    """Rows hold steps 5, 6, 2, 3, 4 of one episode after wrapping: a sample from step 5 sums steps
+    5 and 6 only, one from step 6 that step alone, never the oldest step stored after them."""
+    buffer = make_buffer(steps=5, n_steps=3, gamma=0.5)
+    for t in range(7):
+        buffer.add(**{**step_data(t), "episode_starts": np.zeros(N_AGENTS * N_COPIES, dtype=bool)})
+    batch = buffer._get_samples(np.array([0, 1, 3]), np.zeros(3, dtype=int))  # steps 5, 6, 3
+    np.testing.assert_array_equal(batch.next_observations[:, 0, 0], [106, 106, 105])
+    np.testing.assert_allclose(batch.discounts[:, 0], [0.25, 0.5, 0.125])
+    np.testing.assert_allclose(batch.rewards[:, 0], [50 + 0.5 * 60, 60, 30 + 0.5 * 40 + 0.25 * 50])
 
 
 def test_one_step_samples_bootstrap_with_gamma():
