@@ -32,6 +32,8 @@ TASKS = {
     "invest_gamma_0.95": (lambda: InvestEnv(4), 6_000, 6_000, dict(gamma=0.95), 16),
     "tag": (costly_tag_env, 8_000, 8_000, {}, 32),
     "memory": (lambda: CueMemoryEnv(4, delay=1), 6_000, 12_000, {}, 16),
+    "memory_4": (lambda: CueMemoryEnv(4, delay=3), 12_000, 12_000, {}, 16),
+    "memory_8": (lambda: CueMemoryEnv(4, delay=7), 24_000, 24_000, {}, 16),
 }
 SETTINGS = {
     "SoftHGRN": ("SoftHGRN", {}),
@@ -42,6 +44,8 @@ SETTINGS = {
         dict(actor_loss="standard", exploration_initial_eps=0.3, exploration_final_eps=0.3),
     ),
     "SACHGRN 6,000 agent-steps": ("SACHGRN", dict(timesteps=6_000)),
+    "SoftHGRN recurrent=False": ("SoftHGRN", dict(policy_kwargs=dict(recurrent=False))),
+    "SACHGRN recurrent=False": ("SACHGRN", dict(policy_kwargs=dict(recurrent=False))),
 }
 
 

@@ -34,15 +34,13 @@ PAPER_MAP = dict(n_agents=100, map_size=32, n_resources=8, max_cycles=500)
 
 
 class Averages(BaseCallback):
-    """Polyak averages of a Soft-HGRN policy's online Q-network by each weight ``tau``, updated after
-    each gradient step (none, and no Q-network needed, without ``taus``)."""
+    """Polyak averages of a policy's online acting network (Q-network or actor) by each weight
+    ``tau``, updated after each gradient step (none without ``taus``)."""
 
     def __init__(self, policy, taus: list[float]):
         super().__init__()
-        if taus and not hasattr(policy, "update_average"):
-            raise SystemExit("--average-taus needs a Soft-HGRN preset: this one has no Q-network to average")
         self.policy = policy
-        self.networks = {tau: polyak_average(policy.q_net, tau) for tau in taus}
+        self.networks = {tau: polyak_average(policy.online_network, tau) for tau in taus}
         self.updates_seen: int | None = None
 
     def _on_step(self) -> bool:
@@ -50,7 +48,7 @@ class Averages(BaseCallback):
             self.updates_seen = self.model._n_updates
         for _ in range(self.model._n_updates - self.updates_seen):
             for average in self.networks.values():
-                average.update_parameters(self.policy.q_net)
+                average.update_parameters(self.policy.online_network)
         self.updates_seen = self.model._n_updates
         return True
 
@@ -64,14 +62,15 @@ def evaluate(model, eval_env, seed: int, episodes: int) -> tuple[float, float]:
 
 @contextmanager
 def deployed(model, network: th.nn.Module):
-    """Let ``model`` act with ``network`` in place of its deployed Q-network inside the block."""
+    """Let ``model`` act with ``network`` in place of its deployed network inside the block."""
     policy = model.policy
-    own = policy.q_net_average
-    policy.q_net_average = network
+    name = f"{policy.acting_network_name}_average"
+    own = policy.average_network
+    setattr(policy, name, network)
     try:
         yield
     finally:
-        policy.q_net_average = own
+        setattr(policy, name, own)
 
 
 def main() -> None:

@@ -160,7 +160,8 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument(
         "--online",
         action="store_true",
-        help="act with the online Q-network of a model trained with policy_kwargs.average_tau",
+        help="act with the online network (Q-network or actor) of a model trained with "
+        "policy_kwargs.average_tau",
     )
     evaluate.add_argument("--n-envs", type=_positive_int, help="env copies (default: the run's eval_n_envs)")
     evaluate.add_argument("--seed", type=int, help="env seed (default: the run's seed + 1000)")

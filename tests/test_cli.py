@@ -324,5 +324,5 @@ def test_evaluate_online_acts_with_the_online_network_of_an_averaging_model(surv
         by_network[online] = evaluate_model(model, env, 4, True)
         assert evaluate_run(run, n_episodes=4, deterministic=True, online=online) == by_network[online]
     assert by_network[False] != by_network[True]
-    with pytest.raises(ConfigError, match="--online needs a model that deploys an averaged Q-network"):
+    with pytest.raises(ConfigError, match="--online needs a model that deploys an averaged network"):
         evaluate_run(surviving_run, n_episodes=1, online=True)

@@ -270,3 +270,35 @@ def test_critic_act_advances_every_memory_as_act_does():
         q_values, _ = policy.critics[0](observations, policy.graph_batch(neighbors, groups), state)
     th.testing.assert_close(from_critic, from_actor)
     th.testing.assert_close(actions, q_values.argmax(dim=-1).reshape(-1))
+
+
+def test_average_tau_deploys_an_averaged_actor_and_collects_with_the_online_one(tmp_path):
+    """With ``average_tau`` every actor step moves the averaged actor, ``predict`` acts with it and the
+    online actor collects; the average survives save/load."""
+    env = bit_vec_env(n_envs=2)
+    model = quick_model(env, policy_kwargs=dict(hidden_dim=16, n_heads=2, average_tau=0.1))
+    policy = model.policy
+    model.learn(400)
+    average, online = list(policy.actor_average.parameters()), list(policy.actor.parameters())
+    assert not all(th.equal(a, b) for a, b in zip(average, online, strict=True))
+    expected = [0.9 * a + 0.1 * b for a, b in zip(average, online, strict=True)]
+    policy.update_average()
+    for updated, value in zip(policy.actor_average.parameters(), expected, strict=True):
+        th.testing.assert_close(updated, value)
+
+    obs = env.reset()
+    obs_tensor, _ = policy.obs_to_tensor(obs)
+    hidden = th.zeros(env.num_envs, policy.state_dim)
+    with th.no_grad():
+        _, average_state = policy.act_with(policy.actor_average, obs_tensor, hidden, deterministic=True)
+        _, online_state = policy.act_with(policy.actor, obs_tensor, hidden, deterministic=True)
+        _, collected_state = model._behaviour_act(obs_tensor, hidden)
+    assert not th.allclose(average_state, online_state)
+    _, predicted_state = model.predict(obs, deterministic=True)
+    np.testing.assert_allclose(predicted_state[0][0], average_state.numpy(), atol=1e-6)
+    th.testing.assert_close(collected_state, online_state)
+
+    model.save(tmp_path / "model.zip")
+    loaded = SACHGRN.load(tmp_path / "model.zip", env=env)
+    for a, b in zip(loaded.policy.actor_average.parameters(), policy.actor_average.parameters(), strict=True):
+        th.testing.assert_close(a, b)

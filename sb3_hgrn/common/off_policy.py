@@ -538,9 +538,9 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         return actions, new_hidden.cpu().numpy()
 
     def _behaviour_act(self, obs: dict[str, th.Tensor], hidden: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        """The policy's sampled actions ``(n_envs,)`` to collect with, before epsilon-random ones, and
-        the new recurrent state ``(n_envs, state_dim)``."""
-        return self.policy.act(obs, hidden, deterministic=False)
+        """The online acting network's sampled actions ``(n_envs,)`` to collect with, before
+        epsilon-random ones, and the new recurrent state ``(n_envs, state_dim)``."""
+        return self.policy.act_with(self.policy.online_network, obs, hidden, deterministic=False)
 
     def _final_observations(self, new_obs: dict[str, np.ndarray], dones: np.ndarray, infos: list[dict]):
         """Next observations with each ended episode's final observation in place of its reset one."""

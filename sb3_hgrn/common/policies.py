@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch as th
@@ -11,6 +11,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
+from sb3_hgrn.common.averaging import polyak_average
 from sb3_hgrn.common.checks import observation_problem, slot_name
 from sb3_hgrn.common.hgrn import HGRN, GraphBatch
 from sb3_hgrn.common.temperature import EntropyTemperature
@@ -39,7 +40,8 @@ class GraphPolicy(BasePolicy):
 
     Subclasses build their HGRN networks with :meth:`make_network`, list those whose recurrent
     state is carried between steps in :attr:`recurrent_networks` (the carried state is their states
-    concatenated in that order) and implement :meth:`act`. ``n_agents`` is not a saved
+    concatenated in that order), name the network that acts in :attr:`acting_network_name`, call
+    :meth:`keep_average` once it is built, and implement :meth:`act_with`. ``n_agents`` is not a saved
     hyperparameter: the algorithm sets it from the env it runs on, so the same weights serve any
     agent count.
 
@@ -64,7 +66,15 @@ class GraphPolicy(BasePolicy):
         the input of every HGRN (see :class:`~sb3_hgrn.common.hgrn.HGRN`). ``None``: the flattened
         observation.
     :param features_extractor_kwargs: keyword arguments of ``features_extractor_class``.
+    :param average_tau: keep a Polyak average of the acting network's weights (the Q-network, or the
+        actor), updated after every gradient step (:meth:`update_average`; the plain mean of the first
+        ``1 / average_tau`` iterates, then ``average <- (1 - tau) average + tau online``), and let
+        :meth:`act`, hence ``predict`` and every evaluation, act with it. Collecting experience and
+        the learning targets keep using the online networks. ``None``: act with the online network.
     """
+
+    acting_network_name: ClassVar[str]
+    """Attribute name of the network that chooses the actions (its average is ``<name>_average``)."""
 
     def __init__(
         self,
@@ -85,6 +95,7 @@ class GraphPolicy(BasePolicy):
         optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: dict[str, Any] | None = None,
         normalize_images: bool = False,
+        average_tau: float | None = None,
     ):
         check_graph_spaces(observation_space, action_space)
         super().__init__(
@@ -94,6 +105,13 @@ class GraphPolicy(BasePolicy):
             optimizer_kwargs=optimizer_kwargs,
             normalize_images=False,
         )
+        if average_tau is not None and not (
+            isinstance(average_tau, int | float)
+            and not isinstance(average_tau, bool)
+            and 0 < average_tau <= 1
+        ):
+            raise ValueError(f"average_tau must be a number in (0, 1] or None, got {average_tau!r}.")
+        self.average_tau = average_tau
         self.network_kwargs = dict(
             hidden_dim=hidden_dim,
             n_heads=n_heads,
@@ -168,8 +186,44 @@ class GraphPolicy(BasePolicy):
             stochastic=self.stochastic,
             alpha_log_space=self.alpha_log_space,
             group_n_actions=self.group_n_actions,
+            average_tau=self.average_tau,
         )
         return data
+
+    # --- the deployed network -----------------------------------------------------------------
+    @property
+    def online_network(self) -> HGRN:
+        """The acting network being trained: it collects the experience."""
+        return getattr(self, self.acting_network_name)
+
+    @property
+    def average_network(self) -> nn.Module | None:
+        """The Polyak average of :attr:`online_network` (``None`` without ``average_tau``)."""
+        return getattr(self, f"{self.acting_network_name}_average", None)
+
+    @property
+    def deployed_network(self) -> nn.Module:
+        """The network :meth:`act` (``predict``, every evaluation) acts with: the average when one is
+        kept, else the online network."""
+        average = self.average_network
+        return self.online_network if average is None else average
+
+    def keep_average(self) -> None:
+        """Start the Polyak average of :attr:`online_network` when ``average_tau`` is set (subclasses
+        call it once the network is built)."""
+        average = None if self.average_tau is None else polyak_average(self.online_network, self.average_tau)
+        setattr(self, f"{self.acting_network_name}_average", average)
+
+    def update_average(self) -> None:
+        """Add the online acting network's weights to the average (no-op without ``average_tau``)."""
+        average = self.average_network
+        if average is not None:
+            average.update_parameters(self.online_network)
+
+    def drop_average(self) -> None:
+        """Forget the averaged network: act with the online one from now on."""
+        self.average_tau = None
+        self.keep_average()
 
     # --- graph batches ------------------------------------------------------------------------
     def to_graphs(self, obs: GraphObs) -> tuple[th.Tensor, th.Tensor, th.Tensor | None]:
@@ -207,12 +261,18 @@ class GraphPolicy(BasePolicy):
     def act(
         self, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False
     ) -> tuple[th.Tensor, th.Tensor]:
-        """Choose actions for a slot batch.
+        """Choose actions for a slot batch with the :attr:`deployed_network`.
 
         :param obs: slot batch of graph observations (see :meth:`to_graphs`).
         :param hidden: ``(n_slots, state_dim)`` recurrent state.
         :return: actions ``(n_slots,)`` and the new state ``(n_slots, state_dim)``.
         """
+        return self.act_with(self.deployed_network, obs, hidden, deterministic)
+
+    def act_with(
+        self, network: nn.Module, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False
+    ) -> tuple[th.Tensor, th.Tensor]:
+        """As :meth:`act`, with ``network`` (the online acting network or its average) choosing."""
         raise NotImplementedError
 
     def forward(self, obs: GraphObs, deterministic: bool = False) -> th.Tensor:

@@ -757,16 +757,16 @@ def evaluate_run(
     **env_kwargs: Any,
 ) -> dict[str, Any]:
     """Evaluate a saved run (see :func:`load_run`); ``epsilon`` mixes in random valid actions;
-    ``online`` acts with the online Q-network of a model that deploys a Polyak average
-    (``policy_kwargs.average_tau``)."""
+    ``online`` acts with the online network (Q-network or actor) of a model that deploys a Polyak
+    average (``policy_kwargs.average_tau``)."""
     model, vec_env, _ = load_run(
         path, env=env, n_envs=n_envs, seed=seed, device="cpu", trust_config=trust_config, **env_kwargs
     )
     if online:
-        if getattr(model.policy, "q_net_average", None) is None:
+        if model.policy.average_network is None:
             vec_env.close()
             raise ConfigError(
-                f"{path}: --online needs a model that deploys an averaged Q-network "
+                f"{path}: --online needs a model that deploys an averaged network "
                 "(trained with policy_kwargs.average_tau); this one acts with its online network already."
             )
         model.policy.drop_average()

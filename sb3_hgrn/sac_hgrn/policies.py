@@ -27,6 +27,9 @@ class SACHGRNPolicy(GraphPolicy):
     ``1 / alpha`` times larger ones, and a change of alpha changes the actor's entropy at once
     (docs/results.md has what it did).
 
+    With ``average_tau`` the deployed actor is the Polyak average ``actor_average`` (see
+    :class:`~sb3_hgrn.common.policies.GraphPolicy`); the online actor collects and learns.
+
     :param n_critics: number of critics (2 = clipped double Q).
     :param tempered_actor: divide the actor's outputs by alpha (only for stochastic policies: a
         greedy actor's argmax does not depend on alpha).
@@ -34,6 +37,8 @@ class SACHGRNPolicy(GraphPolicy):
     :param critic_kwargs: network options of the critics only.
     Other parameters: see :class:`~sb3_hgrn.common.policies.GraphPolicy`.
     """
+
+    acting_network_name = "actor"
 
     def __init__(
         self,
@@ -54,6 +59,7 @@ class SACHGRNPolicy(GraphPolicy):
         self.actor_kwargs = dict(actor_kwargs or {})
         self.critic_kwargs = dict(critic_kwargs or {})
         self.actor = self.make_network(**self.actor_kwargs)
+        self.keep_average()
         self.critics = nn.ModuleList(self.make_network(**self.critic_kwargs) for _ in range(n_critics))
         self.critic_targets = nn.ModuleList(self.make_network(**self.critic_kwargs) for _ in range(n_critics))
         self.critic_targets.load_state_dict(self.critics.state_dict())
@@ -81,21 +87,27 @@ class SACHGRNPolicy(GraphPolicy):
         return data
 
     def actor_logits(
-        self, observations: th.Tensor, graph: GraphBatch, state: th.Tensor, groups: th.Tensor | None
+        self,
+        observations: th.Tensor,
+        graph: GraphBatch,
+        state: th.Tensor,
+        groups: th.Tensor | None,
+        actor: nn.Module | None = None,
     ) -> tuple[th.Tensor, th.Tensor]:
         """The actor's logits ``(n_graphs, n_agents, n_actions)`` (its outputs over alpha with
         ``tempered_actor``; alpha detached) and its new state, from observations
         ``(n_graphs, n_agents, *obs_shape)``, the graphs, its state and the agents' group ids (or
-        ``None``)."""
-        outputs, new_state = self.actor(observations, graph, state)
+        ``None``); ``actor`` is the online actor unless another (its average) is given."""
+        outputs, new_state = (self.actor if actor is None else actor)(observations, graph, state)
         if self.tempered_actor and self.stochastic:
             outputs = outputs / self.temperature.per_agent(groups)
         return outputs, new_state
 
-    def act(
-        self, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False
+    def act_with(
+        self, network: nn.Module, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False
     ) -> tuple[th.Tensor, th.Tensor]:
-        return self._act(obs, hidden, deterministic, with_critic=False)
+        """Actions drawn from the policy of the actor ``network`` (the online actor or its average)."""
+        return self._act(obs, hidden, deterministic, actor=network)
 
     def critic_act(
         self, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False
@@ -103,16 +115,21 @@ class SACHGRNPolicy(GraphPolicy):
         """As :meth:`act`, with the actions drawn from the first critic's Boltzmann policy
         ``softmax(Q / alpha)`` (greedy: its argmax) instead of the actor's; every network's memory
         advances as in :meth:`act`."""
-        return self._act(obs, hidden, deterministic, with_critic=True)
+        return self._act(obs, hidden, deterministic, actor=self.actor, with_critic=True)
 
     def _act(
-        self, obs: GraphObs, hidden: th.Tensor, deterministic: bool, with_critic: bool
+        self,
+        obs: GraphObs,
+        hidden: th.Tensor,
+        deterministic: bool,
+        actor: nn.Module,
+        with_critic: bool = False,
     ) -> tuple[th.Tensor, th.Tensor]:
         observations, neighbors, groups = self.to_graphs(obs)
         n_graphs, n_agents = observations.shape[:2]
         states = self.split_state(hidden.reshape(n_graphs, n_agents, -1))
         graph = self.graph_batch(neighbors, groups)  # shared by the actor and every critic
-        logits, actor_state = self.actor_logits(observations, graph, states[0], groups)
+        logits, actor_state = self.actor_logits(observations, graph, states[0], groups, actor)
         new_states = [actor_state]
         for index, (critic, state) in enumerate(zip(self.critics, states[1:], strict=True)):
             if critic.state_dim or (with_critic and index == 0):

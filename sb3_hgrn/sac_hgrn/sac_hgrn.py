@@ -84,7 +84,8 @@ class SACHGRN(GraphOffPolicyAlgorithm):
     :param actor_steps: actor gradient steps on each batch, after its one critic step: more let the
         actor keep up with a critic that moves fast (docs/results.md).
     :param policy_kwargs: network options for both networks, plus ``n_critics``, ``actor_kwargs``,
-        ``critic_kwargs`` (options of one network only) and ``tempered_actor``.
+        ``critic_kwargs`` (options of one network only), ``tempered_actor`` and ``average_tau`` (a
+        Polyak-averaged actor that ``predict`` acts with).
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"GraphPolicy": SACHGRNPolicy}
@@ -256,6 +257,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
                 actor_loss.backward()
                 th.nn.utils.clip_grad_norm_(policy.actor.parameters(), self.max_grad_norm)
                 policy.actor_optimizer.step()
+            policy.update_average()
 
             actor_entropy = categorical_entropy(logits.detach())
             steered = actor_entropy if self.alpha_entropy == "actor" else categorical_entropy(min_q / alpha)

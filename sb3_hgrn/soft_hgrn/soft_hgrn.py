@@ -142,9 +142,6 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
         ``(batch, n_agents, n_actions)``: the soft value, or the hard max for ``stochastic=False``."""
         return soft_value(next_q, alpha) if self.stochastic else next_q.max(dim=-1).values
 
-    def _behaviour_act(self, obs: dict[str, th.Tensor], hidden: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        return self.policy.act_with(self.policy.q_net, obs, hidden)
-
     def train(self, gradient_steps: int, batch_size: int = 32) -> None:
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
