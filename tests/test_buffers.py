@@ -76,6 +76,30 @@ def test_full_buffer_never_samples_the_overwritten_row():
     np.testing.assert_array_equal(batch.next_hidden[:, 0, 0], batch.observations[:, 0, 0] + 1)
 
 
+def test_runs_are_consecutive_steps_of_one_copy_and_flag_episode_starts():
+    """Runs of 3 steps from a wrapped buffer (rows hold steps 5, 6, 2, 3, 4, row 2 overwritten): they
+    start at steps 3 or 4 only, keep their copy, and flag the episode start of step 2 (none here)."""
+    buffer = make_buffer(steps=5)
+    for t in range(7):
+        buffer.add(**step_data(t))
+    steps = buffer.sample_sequences(300, 3)
+    assert len(steps) == 3 and steps[0].observations.shape[0] == 300
+    first = steps[0].observations[:, 0, 0]
+    assert set(first.tolist()) == {3.0, 4.0}
+    for k, step in enumerate(steps):
+        np.testing.assert_array_equal(step.observations[:, 0, 0], first + k)
+        np.testing.assert_array_equal(step.observations[:, :, 1], steps[0].observations[:, :, 1])
+        assert not step.starts.any()
+    with pytest.raises(RuntimeError, match="runs of 5 steps from a replay buffer holding 4"):
+        buffer.sample_sequences(1, 5)
+
+    fresh = make_buffer(steps=8)
+    for t in range(5):  # step 2 starts an episode
+        fresh.add(**step_data(t))
+    for step in fresh.sample_sequences(200, 2):
+        np.testing.assert_array_equal(step.starts.numpy(), step.observations[:, 0, 0].numpy() == 2)
+
+
 def test_n_step_samples_sum_their_copys_steps_up_to_episode_ends():
     """Steps 0-7, an episode starting at step 3, agent 0 of copy 0 terminating at step 5, agent 2 of
     copy 1 joining at step 5, rewards 2 ** t: with n = 3 and gamma 0.5 every sample sums up to three

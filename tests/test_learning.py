@@ -40,17 +40,17 @@ def test_uses_a_costly_but_necessary_action(algorithm):
     assert greedy_return(model, costly_tag_env, n_episodes=32) >= 2.5
 
 
-@pytest.mark.parametrize("algorithm, timesteps", [("SoftHGRN", 6_000), ("SACHGRN", 12_000)])
-def test_remembers_a_cue_with_recurrence_and_not_without(algorithm, timesteps):
-    """The cue is seen at the first step and asked for two steps later (1 per agent when named). With
-    memory every seed names it; without, an agent guesses (2 per team episode in expectation).
-    SAC-HGRN needs twice the agent-steps: its critic must learn to read its memory before its actor
-    can (at 6,000 it solved 2 seeds of 5)."""
-    make_env = lambda: CueMemoryEnv(4, delay=1)  # noqa: E731
+@pytest.mark.parametrize("algorithm", ALGORITHMS)
+def test_remembers_a_cue_with_recurrence_and_not_without(algorithm):
+    """The cue is seen at the first step and asked for four steps later (1 per agent when named). With
+    memory trained through time (runs of 8 steps) every seed names it; without memory an agent
+    guesses (2 per team episode in expectation). From stored states alone (``sequence_length=1``)
+    both algorithms stay near chance at this budget (docs/results.md)."""
+    make_env = lambda: CueMemoryEnv(4, delay=3)  # noqa: E731
     for seed in (0, 1):
-        model = train_on(algorithm, make_env, timesteps, seed=seed)
+        model = train_on(algorithm, make_env, 12_000, seed=seed, sequence_length=8)
         assert greedy_return(model, make_env, seed=100 + seed) == pytest.approx(4.0), f"seed {seed}"
-    forgetful = train_on(algorithm, make_env, timesteps, policy_kwargs=dict(recurrent=False))
+    forgetful = train_on(algorithm, make_env, 12_000, sequence_length=8, policy_kwargs=dict(recurrent=False))
     assert greedy_return(forgetful, make_env, n_episodes=32) <= 2.75
 
 

@@ -24,6 +24,7 @@ class GraphSamples(NamedTuple):
     discounts: th.Tensor  # (batch, 1) float32, gamma ** (steps summed in rewards)
     alive: th.Tensor  # (batch, n_agents) float32, 1 where the agent lived when it acted, 0 for gone agents
     hidden: th.Tensor  # (batch, n_agents, state_dim) recurrent state fed in (zero at episode starts)
+    starts: th.Tensor  # (batch,) bool, true where the observation is the first of its episode
     next_hidden: th.Tensor  # (batch, n_agents, state_dim) recurrent state produced by the last step
     groups: th.Tensor | None  # (batch, n_agents) int64 group ids (None for one group)
 
@@ -205,17 +206,25 @@ class GraphReplayBuffer(BaseBuffer):
 
     def sample(self, batch_size: int, env=None) -> GraphSamples:
         """Draw ``batch_size`` graphs uniformly from the stored steps and copies."""
-        if self.full:
-            # row `pos` holds the oldest step, but its state slot already holds the newest next state
-            rows = (
-                self.pos + 1 + np.random.randint(0, self.buffer_size - 1, size=batch_size)
-            ) % self.buffer_size
-        elif self.pos > 0:
-            rows = np.random.randint(0, self.pos, size=batch_size)
-        else:
+        return self.sample_sequences(batch_size, 1)[0]
+
+    def sample_sequences(self, n_sequences: int, length: int) -> list[GraphSamples]:
+        """Draw ``n_sequences`` runs of ``length`` consecutive stored steps, each of one copy, uniformly
+        over their first step: item ``k`` of the list holds the ``k``-th step of every run
+        (``n_sequences`` graphs), each an (n-step) sample as :meth:`sample` gives. A run may cross
+        episode ends; its samples' ``starts`` flag where the recurrent state restarts from zero."""
+        stored = self.buffer_size - 1 if self.full else self.pos
+        if stored == 0:
             raise RuntimeError("Cannot sample from an empty replay buffer.")
-        copies = np.random.randint(0, self.n_copies, size=batch_size)
-        return self._get_samples(rows, copies)
+        if stored < length:
+            raise RuntimeError(
+                f"Cannot sample runs of {length} steps from a replay buffer holding {stored} step(s)."
+            )
+        # a full buffer's row `pos` holds the oldest step, but its state slot the newest next state
+        oldest = (self.pos + 1) % self.buffer_size if self.full else 0
+        rows = (oldest + np.random.randint(0, stored - length + 1, size=n_sequences)) % self.buffer_size
+        copies = np.random.randint(0, self.n_copies, size=n_sequences)
+        return [self._get_samples((rows + k) % self.buffer_size, copies) for k in range(length)]
 
     def _last_steps(self, rows: np.ndarray, copies: np.ndarray) -> np.ndarray:
         """Offset ``(batch,)`` from each sample's first row to the last row it sums (0 .. n_steps - 1)."""
@@ -241,7 +250,8 @@ class GraphReplayBuffer(BaseBuffer):
         rewards = np.einsum("bk,bka->ba", weights, self.rewards[window_rows, copies[:, None]])
         last_rows = (rows + last) % self.buffer_size
         next_rows = (last_rows + 1) % self.buffer_size
-        keep = ~self.episode_starts[rows, copies]
+        starts = self.episode_starts[rows, copies]
+        keep = ~starts
         hidden = self.hidden[rows, copies] * keep[:, None, None].astype(self.hidden.dtype)
         device = self.device
 
@@ -262,6 +272,7 @@ class GraphReplayBuffer(BaseBuffer):
             discounts=floats(self.gamma ** (last[:, None] + 1.0)),
             alive=floats(self.alive[rows, copies]),
             hidden=floats(hidden),
+            starts=th.as_tensor(starts, device=device),
             next_hidden=floats(self.hidden[next_rows, copies]),
             groups=None if self.groups is None else longs(self.groups[rows, copies]),
         )

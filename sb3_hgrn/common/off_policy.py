@@ -26,9 +26,10 @@ from stable_baselines3.common.utils import (
 )
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_hgrn.common.buffers import GraphReplayBuffer
+from sb3_hgrn.common.buffers import GraphReplayBuffer, GraphSamples
 from sb3_hgrn.common.checks import check_rewards
 from sb3_hgrn.common.files import check_model_file, saved_policy_module
+from sb3_hgrn.common.hgrn import HGRN
 from sb3_hgrn.common.policies import GraphPolicy, check_graph_spaces
 from sb3_hgrn.common.temperature import TemperatureController, group_means, target_entropy
 from sb3_hgrn.common.vec_env import make_graph_vec_env
@@ -69,6 +70,32 @@ def masked_mean(values: th.Tensor, mask: th.Tensor) -> th.Tensor:
     return (values * mask).sum() / mask.sum().clamp(min=1.0)
 
 
+def concatenated(steps: list[GraphSamples]) -> GraphSamples:
+    """The samples of consecutive steps (each ``batch`` graphs) as one batch of ``steps * batch``
+    graphs, step-major."""
+    return GraphSamples(
+        *(None if fields[0] is None else th.cat(fields) for fields in zip(*steps, strict=True))
+    )
+
+
+def unroll(network: HGRN, steps: list[GraphSamples], graphs: list, state: th.Tensor) -> th.Tensor:
+    """Outputs ``(steps * batch, n_agents, n_outputs)`` (step-major, as :func:`concatenated`) of
+    ``network`` along runs of consecutive samples, its recurrent state carried from ``state``
+    ``(batch, n_agents, state_dim)`` (the stored state of the first step) through the run, so that
+    gradients flow back through time, and restarted from zero where a sample's ``starts`` flags the
+    first step of an episode.
+
+    :param graphs: the prepared graph of every step's neighbours (``GraphPolicy.graph_batch``).
+    """
+    outputs = []
+    for index, (step, graph) in enumerate(zip(steps, graphs, strict=True)):
+        if index > 0:
+            state = state * (~step.starts).to(state.dtype)[:, None, None]
+        output, state = network(step.observations, graph, state)
+        outputs.append(output)
+    return th.cat(outputs)
+
+
 def _is_integer(value: Any) -> bool:
     return isinstance(value, int | np.integer) and not isinstance(value, bool)
 
@@ -85,11 +112,13 @@ def check_algorithm_arguments(
     train_freq: Any,
     n_agents: int | None = None,
     n_steps: Any = 1,
+    sequence_length: Any = 1,
 ) -> None:
     """Raise a ``ValueError`` naming the argument unless the arguments make a model that trains.
 
     ``learning_rate`` is a positive number or a schedule (a callable), ``batch_size`` a positive
-    integer (graphs), ``0 <= gamma <= 1``, ``n_steps`` a positive integer, ``train_freq`` at least 1
+    integer (graphs), ``0 <= gamma <= 1``, ``n_steps`` a positive integer, ``sequence_length`` a
+    positive integer that divides ``batch_size``, ``train_freq`` at least 1
     (vec-steps, or ``(n, unit)``) and ``buffer_size`` an integer of agent-transitions that holds at
     least one batch of graphs (``batch_size * n_agents``, when the env and so ``n_agents`` is known).
     """
@@ -105,6 +134,11 @@ def check_algorithm_arguments(
         raise ValueError(f"gamma must be a number in [0, 1], got {gamma!r}.")
     if not _is_integer(n_steps) or n_steps < 1:
         raise ValueError(f"n_steps must be a positive integer (steps per return), got {n_steps!r}.")
+    if not _is_integer(sequence_length) or sequence_length < 1 or batch_size % sequence_length:
+        raise ValueError(
+            f"sequence_length must be a positive integer that divides batch_size={batch_size} (a batch is "
+            f"batch_size // sequence_length runs of sequence_length steps), got {sequence_length!r}."
+        )
     frequency = train_freq[0] if isinstance(train_freq, tuple | list) and train_freq else train_freq
     if not _is_integer(frequency) or frequency < 1:
         raise ValueError(
@@ -194,6 +228,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         tau: float,
         gamma: float,
         n_steps: int,
+        sequence_length: int,
         train_freq: int | tuple[int, str],
         gradient_steps: int,
         target_update_interval: int,
@@ -226,6 +261,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
             train_freq,
             env.n_agents if env is not None else None,
             n_steps,
+            sequence_length,
         )
         if exploration_initial_eps is None:
             exploration_initial_eps = 0.0 if stochastic else 1.0
@@ -254,6 +290,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
             sde_support=False,
             supported_action_spaces=(spaces.Discrete,),
         )
+        self.sequence_length = sequence_length
         self.target_update_interval = target_update_interval
         self.target_entropy_ratio = target_entropy_ratio
         self.alpha_init = alpha_init
@@ -302,6 +339,13 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
             self.alpha_optimizer,
             self.alpha_learning_rate,
         )
+
+    def _sample_runs(self, batch_size: int) -> tuple[GraphSamples, list[GraphSamples]]:
+        """The ``batch_size`` graphs of one gradient step: ``batch_size // sequence_length`` runs of
+        ``sequence_length`` consecutive steps, as one step-major batch and as the list of its steps
+        (for :func:`unroll`)."""
+        steps = self.replay_buffer.sample_sequences(batch_size // self.sequence_length, self.sequence_length)
+        return concatenated(steps), steps
 
     def _update_temperature(
         self, entropy: th.Tensor, groups: th.Tensor | None, alive: th.Tensor

@@ -99,9 +99,14 @@ class SACHGRNPolicy(GraphPolicy):
         ``(n_graphs, n_agents, *obs_shape)``, the graphs, its state and the agents' group ids (or
         ``None``); ``actor`` is the online actor unless another (its average) is given."""
         outputs, new_state = (self.actor if actor is None else actor)(observations, graph, state)
+        return self.logits(outputs, groups), new_state
+
+    def logits(self, outputs: th.Tensor, groups: th.Tensor | None) -> th.Tensor:
+        """The policy's logits from actor outputs ``(n_graphs, n_agents, n_actions)``: the outputs, or
+        with ``tempered_actor`` the outputs over the agents' alpha (detached)."""
         if self.tempered_actor and self.stochastic:
-            outputs = outputs / self.temperature.per_agent(groups)
-        return outputs, new_state
+            return outputs / self.temperature.per_agent(groups)
+        return outputs
 
     def act_with(
         self, network: nn.Module, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False

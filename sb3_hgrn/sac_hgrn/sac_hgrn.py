@@ -11,7 +11,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, Schedule
 from stable_baselines3.common.utils import polyak_update
 
-from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm, masked_mean
+from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm, masked_mean, unroll
 from sb3_hgrn.common.temperature import categorical_entropy
 from sb3_hgrn.sac_hgrn.policies import SACHGRNPolicy
 
@@ -102,6 +102,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
         tau: float = 1.0,
         gamma: float = 0.95,
         n_steps: int = 1,
+        sequence_length: int = 1,
         train_freq: int | tuple[int, str] = 4,
         gradient_steps: int = 1,
         target_update_interval: int = 5,
@@ -148,6 +149,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
             tau=tau,
             gamma=gamma,
             n_steps=n_steps,
+            sequence_length=sequence_length,
             train_freq=train_freq,
             gradient_steps=gradient_steps,
             target_update_interval=target_update_interval,
@@ -216,11 +218,11 @@ class SACHGRN(GraphOffPolicyAlgorithm):
         self._update_learning_rate([policy.actor_optimizer, policy.critic_optimizer])
         critic_losses, actor_losses, entropies, alpha_gradients, actor_entropies = [], [], [], [], []
         for _ in range(gradient_steps):
-            batch = self.replay_buffer.sample(batch_size)
-            actor_state, *critic_states = policy.split_state(batch.hidden)
+            batch, steps = self._sample_runs(batch_size)
+            actor_state, *critic_states = policy.split_state(steps[0].hidden)
             next_actor_state, *next_critic_states = policy.split_state(batch.next_hidden)
             alpha = policy.temperature.per_agent(batch.groups)
-            graph = policy.graph_batch(batch.neighbors, batch.groups)  # shared by actor and critics
+            graphs = [policy.graph_batch(step.neighbors, step.groups) for step in steps]  # actor and critics
             with th.no_grad():
                 next_graph = policy.graph_batch(batch.next_neighbors, batch.groups)
                 next_logits, _ = policy.actor_logits(
@@ -236,7 +238,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
                 target_q = batch.bootstrapped(next_value)
 
             q_values = [
-                critic(batch.observations, graph, state)[0]
+                unroll(critic, steps, graphs, state)
                 for critic, state in zip(policy.critics, critic_states, strict=True)
             ]
             actions = batch.actions.unsqueeze(-1)
@@ -251,7 +253,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
 
             min_q = th.stack([q.detach() for q in q_values]).amin(dim=0)
             for _ in range(self.actor_steps):
-                logits, _ = policy.actor_logits(batch.observations, graph, actor_state, batch.groups)
+                logits = policy.logits(unroll(policy.actor, steps, graphs, actor_state), batch.groups)
                 actor_loss = self._policy_loss(logits, min_q, alpha, batch.alive)
                 policy.actor_optimizer.zero_grad()
                 actor_loss.backward()

@@ -10,7 +10,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, Schedule
 from stable_baselines3.common.utils import polyak_update
 
-from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm, masked_mean
+from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm, masked_mean, unroll
 from sb3_hgrn.common.temperature import categorical_entropy
 from sb3_hgrn.soft_hgrn.policies import SoftHGRNPolicy
 
@@ -47,6 +47,10 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
     :param gamma: discount factor.
     :param n_steps: rewards summed per target before bootstrapping (n-step returns, as SB3's
         ``n_steps``; they stop at episode ends).
+    :param sequence_length: steps per replayed run: a batch of ``batch_size`` graphs is
+        ``batch_size // sequence_length`` runs of consecutive steps, along which the Q-network's
+        recurrent state is carried and its gradients flow back through time (1: single steps from
+        their stored states).
     :param train_freq: train every ``train_freq`` vec-steps.
     :param gradient_steps: gradient steps per training round.
     :param target_update_interval: gradient steps between target updates.
@@ -81,6 +85,7 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
         tau: float = 1.0,
         gamma: float = 0.95,
         n_steps: int = 1,
+        sequence_length: int = 1,
         train_freq: int | tuple[int, str] = 4,
         gradient_steps: int = 1,
         target_update_interval: int = 5,
@@ -113,6 +118,7 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
             tau=tau,
             gamma=gamma,
             n_steps=n_steps,
+            sequence_length=sequence_length,
             train_freq=train_freq,
             gradient_steps=gradient_steps,
             target_update_interval=target_update_interval,
@@ -148,14 +154,14 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
         q_net, q_net_target = self.policy.q_net, self.policy.q_net_target
         losses, entropies, alpha_gradients = [], [], []
         for _ in range(gradient_steps):
-            batch = self.replay_buffer.sample(batch_size)
+            batch, steps = self._sample_runs(batch_size)
             alpha = self.policy.temperature.per_agent(batch.groups)
             with th.no_grad():
                 next_graph = self.policy.graph_batch(batch.next_neighbors, batch.groups)
                 next_q, _ = q_net_target(batch.next_observations, next_graph, batch.next_hidden)
                 target_q = batch.bootstrapped(self._next_value(next_q, alpha))
-            graph = self.policy.graph_batch(batch.neighbors, batch.groups)
-            q_values, _ = q_net(batch.observations, graph, batch.hidden)
+            graphs = [self.policy.graph_batch(step.neighbors, step.groups) for step in steps]
+            q_values = unroll(q_net, steps, graphs, steps[0].hidden)
             taken_q = q_values.gather(-1, batch.actions.unsqueeze(-1)).squeeze(-1)
             loss = masked_mean((taken_q - target_q) ** 2, batch.alive)
             self.policy.optimizer.zero_grad()
