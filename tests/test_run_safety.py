@@ -29,10 +29,10 @@ from sb3_hgrn.common.evaluation import RandomGraphPolicy
 from sb3_hgrn.common.files import DamagedModelFileError, save_model_atomically
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
 from sb3_hgrn.experiments.callbacks import rewind_team_returns
-from sb3_hgrn.experiments.config import RunConfig
+from sb3_hgrn.experiments.config import ConfigError, RunConfig
 from sb3_hgrn.experiments.lock import PID_FILE, RunLock
 from sb3_hgrn.experiments.runs import check_stored_model_paths
-from sb3_hgrn.experiments.table1 import LOG_FILE, Job, run_jobs
+from sb3_hgrn.experiments.table1 import LOG_FILE, Job, check_budget_of_folder, run_jobs
 from sb3_hgrn.sac_hgrn.policies import SACHGRNPolicy
 from tests.toy_envs import BadValueEnv, DictOnlyEnv
 
@@ -107,7 +107,7 @@ def test_resume_with_another_config_is_refused_naming_the_keys(root, capsys):
     assert snapshot(root) == before
 
 
-def test_overwrite_moves_the_old_run_aside_until_the_new_one_finishes(root, monkeypatch):
+def test_overwrite_moves_the_old_run_aside_and_keeps_it(root, monkeypatch):
     folder = run_of(root)
     old_eval = (folder / "eval.json").read_bytes()
 
@@ -124,8 +124,23 @@ def test_overwrite_moves_the_old_run_aside_until_the_new_one_finishes(root, monk
 
     assert main([*train_args(root), "--overwrite"]) == 0
     assert (folder / "eval.json").exists() and (folder / "model.zip").exists()
-    assert sorted(path.name for path in folder.parent.iterdir()) == ["seed_0", aside.name]  # the first stays
-    assert (aside / "eval.json").read_bytes() == old_eval
+    asides = sorted(folder.parent.glob("seed_0.replaced-*"))
+    assert len(asides) == 2 and aside in asides  # the killed attempt was moved aside too; both stay
+    assert (aside / "eval.json").read_bytes() == old_eval and (aside / "model.zip").is_file()
+
+
+def test_the_budget_check_reads_run_folders_not_runs_moved_aside(tmp_path):
+    def complete(name: str, budget: str) -> None:
+        folder = tmp_path / "surviving_v0" / "soft_hgrn" / name
+        folder.mkdir(parents=True)
+        (folder / "eval.json").write_text(json.dumps({"completed": True, "budget": budget}))
+
+    complete("seed_0", "ci")
+    complete("seed_0.replaced-20261201T161500Z", "cpu")
+    check_budget_of_folder(tmp_path, "ci")
+    complete("seed_1", "cpu")
+    with pytest.raises(ConfigError, match="seed_1 holds a run of budget 'cpu', not 'ci'"):
+        check_budget_of_folder(tmp_path, "ci")
 
 
 def test_rewind_team_returns_keeps_the_episodes_of_the_checkpoint(tmp_path):
@@ -164,6 +179,52 @@ def test_resume_skips_a_damaged_checkpoint(root, capsys):
     assert users_file.read_text() == "keep"
     results = json.loads((folder / "eval.json").read_text())
     assert results["resumed_from"] == "model_100_steps.zip" and results["agent_steps"] == 200
+
+
+def test_a_damaged_checkpoint_is_renamed_aside_not_written_over(root):
+    folder = run_of(root)
+    as_killed(folder)
+    damaged = folder / "checkpoints" / "model_200_steps.zip"
+    cut_short(damaged)
+    damaged_bytes = damaged.read_bytes()
+    with pytest.warns(UserWarning, match="Renamed the damaged model file .*model_200_steps.zip"):
+        assert main(train_args(root)) == 0
+    (aside,) = (folder / "checkpoints").glob("model_200_steps.damaged-*.zip")
+    assert aside.read_bytes() == damaged_bytes
+    assert SoftHGRN.load(damaged).num_timesteps == 200  # the resumed run's own checkpoint
+
+
+def never_learns(*args, **kwargs):
+    raise AssertionError("a finished model was trained again")
+
+
+@pytest.mark.parametrize("checkpoints", [False, True])
+def test_a_run_killed_during_its_final_evaluation_is_evaluated_not_retrained(root, monkeypatch, checkpoints):
+    folder = run_of(root)
+    (folder / "eval.json").unlink()
+    if not checkpoints:
+        shutil.rmtree(folder / "checkpoints")
+    before = snapshot(folder / "checkpoints") if checkpoints else {}
+    model_bytes = (folder / "model.zip").read_bytes()
+    monkeypatch.setattr(GraphOffPolicyAlgorithm, "learn", never_learns)
+    assert main(train_args(root)) == 0
+    assert (folder / "model.zip").read_bytes() == model_bytes
+    results = json.loads((folder / "eval.json").read_text())
+    assert results["completed"] and results["resumed_from"] == "model.zip" and results["agent_steps"] == 200
+    assert (snapshot(folder / "checkpoints") if checkpoints else {}) == before
+
+
+def test_a_damaged_final_model_is_renamed_aside_and_the_run_resumed(root):
+    folder = run_of(root)
+    (folder / "eval.json").unlink()
+    cut_short(folder / "model.zip")
+    damaged_bytes = (folder / "model.zip").read_bytes()
+    with pytest.warns(UserWarning, match="Renamed the damaged model file .*model.zip"):
+        assert main(train_args(root)) == 0
+    (aside,) = folder.glob("model.damaged-*.zip")
+    assert aside.read_bytes() == damaged_bytes
+    assert json.loads((folder / "eval.json").read_text())["resumed_from"] == "model_200_steps.zip"
+    assert SoftHGRN.load(folder / "model.zip").num_timesteps == 200
 
 
 def test_evaluate_skips_a_damaged_checkpoint_and_names_a_damaged_file(root, capsys):
