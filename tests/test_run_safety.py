@@ -26,7 +26,7 @@ from sb3_hgrn.cli import main
 from sb3_hgrn.common import controllers
 from sb3_hgrn.common.checks import observation_problem
 from sb3_hgrn.common.evaluation import RandomGraphPolicy
-from sb3_hgrn.common.files import DamagedModelFileError, save_model_atomically
+from sb3_hgrn.common.files import DamagedModelFileError, save_model_atomically, write_text_atomically
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
 from sb3_hgrn.experiments.callbacks import rewind_team_returns
 from sb3_hgrn.experiments.config import ConfigError, RunConfig
@@ -287,6 +287,26 @@ def test_a_save_cut_short_leaves_the_old_file_and_no_partial_one(finished_root, 
     with pytest.raises(Interrupted):
         save_model_atomically(CutShort(model), target)
     assert target.read_bytes() == before and os.listdir(tmp_path) == ["model.zip"]
+
+
+def test_an_atomic_write_flushes_the_file_then_its_folder_after_the_rename(tmp_path, monkeypatch):
+    events = []
+    fsync, replace = os.fsync, os.replace
+
+    def recorded_fsync(descriptor):
+        flushed = os.fstat(descriptor)
+        events.append("fsync folder" if os.path.samestat(flushed, os.stat(tmp_path)) else "fsync file")
+        fsync(descriptor)
+
+    def recorded_replace(source, target):
+        events.append("replace")
+        replace(source, target)
+
+    monkeypatch.setattr(os, "fsync", recorded_fsync)
+    monkeypatch.setattr(os, "replace", recorded_replace)
+    write_text_atomically(tmp_path / "eval.json", "{}")
+    assert events == ["fsync file", "replace", "fsync folder"]
+    assert (tmp_path / "eval.json").read_text() == "{}"
 
 
 def test_a_kill_while_saving_a_checkpoint_leaves_the_earlier_ones_whole(root, monkeypatch, capsys):
