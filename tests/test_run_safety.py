@@ -28,8 +28,12 @@ from sb3_hgrn.common.checks import observation_problem
 from sb3_hgrn.common.evaluation import RandomGraphPolicy
 from sb3_hgrn.common.files import DamagedModelFileError, save_model_atomically, write_text_atomically
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
-from sb3_hgrn.experiments.callbacks import rewind_team_returns
-from sb3_hgrn.experiments.config import ConfigError, RunConfig
+from sb3_hgrn.experiments.callbacks import (
+    AtomicCheckpointCallback,
+    remove_old_checkpoints,
+    rewind_team_returns,
+)
+from sb3_hgrn.experiments.config import ConfigError, RunConfig, resolve_config
 from sb3_hgrn.experiments.lock import PID_FILE, RunLock
 from sb3_hgrn.experiments.runs import check_stored_model_paths
 from sb3_hgrn.experiments.table1 import LOG_FILE, Job, check_budget_of_folder, run_jobs
@@ -307,6 +311,67 @@ def test_an_atomic_write_flushes_the_file_then_its_folder_after_the_rename(tmp_p
     write_text_atomically(tmp_path / "eval.json", "{}")
     assert events == ["fsync file", "replace", "fsync folder"]
     assert (tmp_path / "eval.json").read_text() == "{}"
+
+
+def checkpoint_files(folder: Path, steps: list[int], kinds=("", "replay_buffer_", "training_state_")) -> set:
+    """The names of the checkpoint files of ``steps`` agent-steps (zip and companions)."""
+    return {f"model_{kind}{step}_steps.{'zip' if not kind else 'pkl'}" for step in steps for kind in kinds}
+
+
+def test_old_checkpoints_are_removed_zip_first_keeping_the_newest(tmp_path, monkeypatch):
+    for name in checkpoint_files(tmp_path, [100, 200, 300, 400, 500]) | {"model_replay_buffer_50_steps.pkl"}:
+        (tmp_path / name).write_bytes(b"x")
+    others = {"model_200_steps.damaged-20261201T161500Z.zip", "notes.txt", ".model_100_steps.zip.7.tmp"}
+    for name in others:
+        (tmp_path / name).write_bytes(b"x")
+    unlinked = []
+    unlink = Path.unlink
+    monkeypatch.setattr(
+        Path, "unlink", lambda path, **kwargs: unlinked.append(path.name) or unlink(path, **kwargs)
+    )
+    # 400 was just written; 500 is newer (of an earlier attempt): kept, as are 400 and one older one.
+    assert remove_old_checkpoints(tmp_path, "model", 400, keep=2) == [200, 100, 50]
+    assert {path.name for path in tmp_path.iterdir()} == checkpoint_files(tmp_path, [300, 400, 500]) | others
+    for step in (200, 100):
+        assert unlinked.index(f"model_{step}_steps.zip") < unlinked.index(
+            f"model_replay_buffer_{step}_steps.pkl"
+        )
+        assert unlinked.index(f"model_{step}_steps.zip") < unlinked.index(
+            f"model_training_state_{step}_steps.pkl"
+        )
+    assert remove_old_checkpoints(tmp_path, "model", 500, keep=3) == []
+
+
+def test_train_keeps_the_newest_checkpoints_and_their_replay_buffers(tmp_path):
+    args = [*train_args(tmp_path, 500), "--save-replay-buffer", "--keep-checkpoints", "2"]
+    assert main(args) == 0
+    folder = run_of(tmp_path)
+    assert {path.name for path in (folder / "checkpoints").iterdir()} == checkpoint_files(folder, [400, 500])
+    assert SoftHGRN.load(folder / "model.zip").num_timesteps == 500
+    # Resuming with another count is the same run; 0 keeps every checkpoint.
+    as_killed(folder)
+    assert main([*train_args(tmp_path, 500), "--keep-checkpoints", "0"]) == 0
+    assert yaml.safe_load((folder / "config.yml").read_text())["keep_checkpoints"] == 0
+
+
+def test_keep_checkpoints_comes_from_the_budget_and_bad_counts_are_refused(tmp_path, capsys):
+    config = tmp_path / "keep.yml"
+    config.write_text("budgets: {ci: {keep_checkpoints: 1}}\n")
+    assert resolve_config("surviving_v0", "soft_hgrn", "ci", config_file=config).keep_checkpoints == 1
+    assert resolve_config("surviving_v0", "soft_hgrn", "ci").keep_checkpoints == 3
+    assert (
+        resolve_config(
+            "surviving_v0", "soft_hgrn", "ci", config_file=config, keep_checkpoints=0
+        ).keep_checkpoints
+        == 0
+    )
+    config.write_text("budgets: {ci: {keep_checkpoints: -1}}\n")
+    error = fails_with([*train_args(tmp_path), "--config", str(config)], capsys)
+    assert "budget ci: keep_checkpoints must be a whole number >= 0" in error and "-1" in error
+    error = fails_with([*train_args(tmp_path), "--keep-checkpoints", "-2"], capsys)
+    assert "--keep-checkpoints must be a whole number >= 0" in error
+    with pytest.raises(ValueError, match="keep must be a whole number >= 0"):
+        AtomicCheckpointCallback(10, str(tmp_path), keep=-1)
 
 
 def test_a_kill_while_saving_a_checkpoint_leaves_the_earlier_ones_whole(root, monkeypatch, capsys):

@@ -137,12 +137,18 @@ RUN_ENTRIES = (CONFIG_FILE, MODEL_FILE, EVAL_FILE, TEAM_RETURNS_FILE, CHECKPOINT
 _MISSING = object()
 
 
+UNCOMPARED_KEYS = ("extra", "keep_checkpoints")
+"""Top-level keys of ``config.yml`` that may change when a run resumes: ``extra`` records versions
+and the command line, ``keep_checkpoints`` how many checkpoints stay on disk; neither changes what the
+run computes."""
+
+
 def config_differences(stored: dict[str, Any], current: dict[str, Any], prefix: str = "") -> list[str]:
-    """Dotted keys whose values differ between two configurations (the top-level ``extra`` is
-    ignored: it records versions and the command line, not the run)."""
+    """Dotted keys whose values differ between two configurations (the top-level
+    :data:`UNCOMPARED_KEYS` are ignored)."""
     differences = []
     for key in dict.fromkeys([*stored, *current]):
-        if not prefix and key == "extra":
+        if not prefix and key in UNCOMPARED_KEYS:
             continue
         old, new = stored.get(key, _MISSING), current.get(key, _MISSING)
         if isinstance(old, dict) and isinstance(new, dict):
@@ -484,7 +490,7 @@ def _callbacks(
 ) -> list[BaseCallback]:
     """The training callbacks of a run: ``team_returns.csv`` (continued when ``resumed``) and, with
     ``save_freq``, atomic checkpoints every ``save_freq`` agent-steps (with the replay buffer when
-    ``save_replay_buffer``)."""
+    ``save_replay_buffer``), the newest ``config.keep_checkpoints`` of them kept."""
     callbacks: list[BaseCallback] = [
         TeamMonitorCallback(str(folder / TEAM_RETURNS_FILE), env_id=config.env, append=resumed)
     ]
@@ -495,6 +501,7 @@ def _callbacks(
                 str(folder / CHECKPOINT_DIR),
                 name_prefix="model",
                 save_replay_buffer=save_replay_buffer,
+                keep=config.keep_checkpoints,
             )
         )
     return callbacks
