@@ -17,6 +17,7 @@ from pathlib import Path
 import gymnasium
 import numpy as np
 import pytest
+import torch as th
 import yaml
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.save_util import load_from_pkl, save_to_pkl
@@ -35,7 +36,7 @@ from sb3_hgrn.experiments.callbacks import (
 )
 from sb3_hgrn.experiments.config import ConfigError, RunConfig, resolve_config
 from sb3_hgrn.experiments.lock import PID_FILE, RunLock
-from sb3_hgrn.experiments.runs import check_stored_model_paths
+from sb3_hgrn.experiments.runs import check_stored_model_paths, trained_parameter_count
 from sb3_hgrn.experiments.table1 import LOG_FILE, Job, check_budget_of_folder, run_jobs
 from sb3_hgrn.sac_hgrn.policies import SACHGRNPolicy
 from tests.toy_envs import BadValueEnv, DictOnlyEnv
@@ -472,6 +473,19 @@ def small_env():
     env = make_graph_vec_env("surviving_v0", seed=0, env_kwargs={"n_agents": 5, "map_size": 10})
     yield env
     env.close()
+
+
+def numel(*modules: th.nn.Module) -> int:
+    return sum(param.numel() for module in modules for param in module.parameters())
+
+
+def test_n_parameters_counts_the_trained_weights_only(small_env, finished_root):
+    soft = SoftHGRN("GraphPolicy", small_env, policy_kwargs=dict(hidden_dim=16, average_tau=0.1), seed=0)
+    assert trained_parameter_count(soft) == numel(soft.policy.q_net) < numel(soft.policy)
+    sac = SACHGRN("GraphPolicy", small_env, policy_kwargs=dict(hidden_dim=16, n_critics=2), seed=0)
+    assert trained_parameter_count(sac) == numel(sac.policy.actor, sac.policy.critics) < numel(sac.policy)
+    stored = yaml.safe_load((run_of(finished_root) / "config.yml").read_text())["extra"]["n_parameters"]
+    assert stored == numel(SoftHGRN.load(run_of(finished_root) / "model.zip").policy.q_net)
 
 
 @pytest.mark.parametrize(

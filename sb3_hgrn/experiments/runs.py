@@ -28,6 +28,7 @@ import importlib
 import inspect
 import itertools
 import json
+import operator
 import os
 import pickle
 import re
@@ -569,7 +570,7 @@ def _run_figures(config: RunConfig, env: GraphVecEnv, model: GraphOffPolicyAlgor
         "algorithm_kwargs": _plain(merge(kwargs, config.hyperparams)),
         "n_agents": int(env.n_agents),
         "num_envs": int(env.num_envs),
-        "n_parameters": int(sum(p.numel() for p in model.policy.parameters())),
+        "n_parameters": trained_parameter_count(model),
         "package_version": sb3_hgrn.__version__,
         "stable_baselines3_version": str(stable_baselines3.__version__),
         "torch_version": str(torch.__version__),
@@ -577,6 +578,19 @@ def _run_figures(config: RunConfig, env: GraphVecEnv, model: GraphOffPolicyAlgor
         "python": sys.version.split()[0],
         "command": " ".join(sys.argv),
     }
+
+
+def trained_parameter_count(model: GraphOffPolicyAlgorithm) -> int:
+    """The weights ``model``'s network optimisers train (the online Q-network, or the actor and the
+    critics), each counted once; the target and averaged copies and the temperature are left out."""
+    optimizers = [operator.attrgetter(name)(model) for name in model._optimizer_names()]
+    params = {
+        id(param): param
+        for optimizer in optimizers
+        for group in optimizer.param_groups
+        for param in group["params"]
+    }
+    return int(sum(param.numel() for param in params.values()))
 
 
 def _plain(value: Any) -> Any:
