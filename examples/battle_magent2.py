@@ -28,9 +28,9 @@ from sb3_hgrn import (
 
 
 def red_cells(env):
-    """(n_red, 2) map cells of the red agents in possible_agents order (gone ones far off the map)."""
+    """(n_red, 2) map cells of the red agents in possible_agents order (gone ones nan: not read)."""
     grid, red = env.unwrapped.env, env.unwrapped.handles[0]
-    cells = np.full((len(env.possible_agents), 2), -1000.0)
+    cells = np.full((len(env.possible_agents), 2), np.nan)
     cells[grid.get_agent_id(red)] = grid.get_pos(red)
     return cells
 

@@ -129,6 +129,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--save-freq", type=_positive_int, help="save a checkpoint every this many agent-steps"
     )
     train.add_argument(
+        "--keep-checkpoints",
+        type=int,
+        metavar="K",
+        help="keep only the newest K checkpoints, replay buffers included (0: all; default: the "
+        "budget's keep_checkpoints, else 3)",
+    )
+    train.add_argument(
         "--save-replay-buffer",
         action="store_true",
         help="keep the replay buffer beside every checkpoint, so a resumed run continues with it",
@@ -379,6 +386,7 @@ def _train(args: argparse.Namespace) -> int:
         params=parse_assignments(args.param, "--param"),
         env_params=parse_assignments(args.env_param, "--env-param"),
         config_file=args.config,
+        keep_checkpoints=args.keep_checkpoints,
     )
     _set_threads(args.threads)
     folder = run_folder(args.folder, config.env, config.preset, config.seed)

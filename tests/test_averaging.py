@@ -25,3 +25,70 @@ def test_rejects_a_weight_outside_zero_one():
     for tau in (0.0, 1.5, -0.1):
         with pytest.raises(ValueError, match="tau"):
             PolyakWeight(tau)
+
+
+def averaged_pair(tau: float) -> tuple[nn.Module, th.optim.swa_utils.AveragedModel, nn.Module]:
+    """A small network with a buffer, torch's own ``AveragedModel`` of :class:`PolyakWeight` (the
+    earlier implementation) and :func:`polyak_average` of it."""
+    th.manual_seed(0)
+    network = nn.Sequential(nn.Linear(3, 4), nn.BatchNorm1d(4), nn.Linear(4, 2))
+    reference = th.optim.swa_utils.AveragedModel(network, multi_avg_fn=PolyakWeight(tau))
+    return network, reference, polyak_average(network, tau)
+
+
+def train_step(network: nn.Module, step: int) -> None:
+    """Move every weight and buffer of ``network`` as a gradient step (and a forward pass) would;
+    every third step shrinks the weights a million times (where blending an average into them with
+    weight 1 is not an exact copy)."""
+    with th.no_grad():
+        for param in network.parameters():
+            param.mul_(1e-6 if step % 3 == 0 else 1.0).add_(th.randn_like(param) * 10.0 ** (step % 3 - 9))
+    network.train(True)
+    network(th.randn(5, 3))
+
+
+def assert_same_average(want: nn.Module, got: nn.Module) -> None:
+    for (name, expected), actual in zip(want.state_dict().items(), got.state_dict().values(), strict=True):
+        assert th.equal(actual, expected), name
+
+
+def test_the_average_is_bitwise_that_of_torchs_averaged_model():
+    network, reference, average = averaged_pair(tau=0.25)
+    for step in range(8):
+        train_step(network, step)
+        reference.update_parameters(network)
+        average.update_parameters(network)
+        assert_same_average(reference, average)
+
+
+def test_an_update_never_reads_a_tensor_on_the_host(monkeypatch):
+    """No ``bool``, ``int``, ``float`` or ``.item()`` of a tensor (each waits for the device)."""
+    network, _, average = averaged_pair(tau=0.5)
+
+    def host_read(*args):
+        raise AssertionError("the update read a tensor on the host")
+
+    for step in range(4):
+        train_step(network, step)
+        with monkeypatch.context() as patch:
+            for name in ("__bool__", "__int__", "__float__", "__index__", "item", "tolist"):
+                patch.setattr(th.Tensor, name, host_read)
+            average.update_parameters(network)
+    assert average.n_averaged.item() == 4
+
+
+@pytest.mark.parametrize("updates_before_saving", [0, 3])
+def test_a_loaded_average_goes_on_as_the_saved_one(updates_before_saving):
+    network, reference, average = averaged_pair(tau=0.25)
+    for step in range(updates_before_saving):
+        train_step(network, step)
+        reference.update_parameters(network)
+        average.update_parameters(network)
+    loaded = polyak_average(network, 0.25)
+    loaded.update_parameters(network)  # its own count is 1 now; loading sets the saved one
+    loaded.load_state_dict(average.state_dict())
+    for step in range(updates_before_saving, updates_before_saving + 3):
+        train_step(network, step)
+        reference.update_parameters(network)
+        loaded.update_parameters(network)
+        assert_same_average(reference, loaded)

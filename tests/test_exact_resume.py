@@ -33,6 +33,7 @@ TRAIN = [
     "train", "--env", "surviving_v0", "--preset", "soft_hgrn", "--budget", "ci", "--verbose", "0",
     "--threads", "1", "--timesteps", str(TOTAL), "--save-freq", str(SAVE_FREQ), "--save-replay-buffer",
     "--param", "batch_size=4", "policy_kwargs.hidden_dim=16", "--env-param", f"n_agents={N_AGENTS}",
+    "--keep-checkpoints", "0",
 ]  # fmt: skip
 
 

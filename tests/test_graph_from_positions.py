@@ -110,6 +110,46 @@ def test_agents_at_one_point_list_themselves_first():
     )
 
 
+def test_a_gone_agent_takes_no_place_in_a_list():
+    points = np.array([[0.0, 0.0], [0.1, 0.0], [1.0, 0.0], [5.0, 5.0]])
+    alive = np.array([True, False, True, True])
+    np.testing.assert_array_equal(
+        PositionGraph(4, k=1).neighbors(points, alive), [[0, 2], [1, -1], [2, 0], [3, 2]]
+    )
+    # Radius mode, rows full: the gone agent 1 is the nearest of 0 and 2 and still takes no place.
+    np.testing.assert_array_equal(
+        PositionGraph(4, radius=2.0, max_neighbors=2).neighbors(points, alive),
+        [[0, 2], [1, -1], [2, 0], [3, -1]],
+    )
+
+
+@pytest.mark.parametrize("kwargs", [dict(k=3), dict(radius=2.0, max_neighbors=4), dict()])
+def test_living_agents_are_linked_as_if_the_gone_ones_were_not_there(kwargs):
+    points = uniform_points(40, 2, seed=5)
+    alive = np.random.default_rng(5).random(40) < 0.6
+    living = np.flatnonzero(alive)
+    points[~alive] = np.nan  # never read
+    lists = PositionGraph(40, **kwargs).neighbors(points, alive)
+    expected = brute_force(points[living], **kwargs)
+    width = lists.shape[1]
+    np.testing.assert_array_equal(lists[living, : expected.shape[1]], np.append(living, -1)[expected])
+    assert (lists[living, expected.shape[1] :] == -1).all()
+    np.testing.assert_array_equal(
+        lists[~alive], np.pad(np.flatnonzero(~alive)[:, None], ((0, 0), (0, width - 1)), constant_values=-1)
+    )
+
+
+def test_no_living_agent_lists_each_agent_alone():
+    lists = PositionGraph(3, k=2).neighbors(np.full((3, 2), np.nan), np.zeros(3, dtype=bool))
+    np.testing.assert_array_equal(lists, [[0, -1, -1], [1, -1, -1], [2, -1, -1]])
+
+
+@pytest.mark.parametrize("alive", [np.ones(3, dtype=bool), np.ones(4), [1, 0, 1, 1]])
+def test_bad_alive_is_rejected(alive):
+    with pytest.raises(ValueError, match=r"alive must be a bool array of shape \(n_agents=4,\)"):
+        PositionGraph(4, k=1).neighbors(np.zeros((4, 2)), alive)
+
+
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
@@ -223,6 +263,42 @@ def test_wrapper_builds_the_graph_once_per_step_from_the_given_env():
     wrapped.step({agent: 1 for agent in wrapped.agents})
     np.testing.assert_array_equal(wrapped.neighbors(), brute_force(env.xy, radius=0.4, max_neighbors=3))
     assert len(seen) == 2
+
+
+class MortalSwarmEnv(SwarmEnv):
+    """A SwarmEnv whose agent ``bird_1`` dies at the first step and is dropped from ``agents``; its
+    position is then ``nan`` (the env no longer knows it)."""
+
+    def step(self, actions):
+        result = super().step(actions)
+        if "bird_1" in self.agents:
+            self.agents.remove("bird_1")
+        self.xy[1] = np.nan
+        return result
+
+
+def test_wrapper_links_only_the_agents_still_in_the_env():
+    env = MortalSwarmEnv(4)
+    wrapped = GraphFromPositions(env, SwarmEnv.positions, k=1)
+    wrapped.reset(seed=0)
+    env.xy[:] = [[0.0, 0.0], [0.1, 0.0], [1.0, 0.0], [5.0, 5.0]]
+    np.testing.assert_array_equal(wrapped.neighbors(), [[0, 1], [1, 0], [2, 1], [3, 2]])
+    wrapped.step({agent: 0 for agent in wrapped.agents})
+    env.xy[[0, 2, 3]] = [[0.0, 0.0], [1.0, 0.0], [5.0, 5.0]]
+    np.testing.assert_array_equal(wrapped.neighbors(), [[0, 2], [1, -1], [2, 0], [3, 2]])
+
+
+def test_graph_vec_env_links_the_living_around_a_dead_agent():
+    vec_env = make_graph_vec_env(
+        lambda: GraphFromPositions(MortalSwarmEnv(5), SwarmEnv.positions, k=2), seed=0
+    )
+    vec_env.reset()
+    obs = vec_env.step(np.zeros(5, dtype=int))[0]
+    xy = vec_env.envs[0].env.xy
+    living = np.array([0, 2, 3, 4])
+    expected = np.full((5, 3), -1)
+    expected[living] = np.append(living, -1)[brute_force(xy[living], k=2)]
+    np.testing.assert_array_equal(obs["neighbors"], expected)
 
 
 def test_wrapper_rejects_what_is_not_a_positions_callable_or_an_env():

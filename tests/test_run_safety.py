@@ -17,6 +17,7 @@ from pathlib import Path
 import gymnasium
 import numpy as np
 import pytest
+import torch as th
 import yaml
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.save_util import load_from_pkl, save_to_pkl
@@ -26,13 +27,17 @@ from sb3_hgrn.cli import main
 from sb3_hgrn.common import controllers
 from sb3_hgrn.common.checks import observation_problem
 from sb3_hgrn.common.evaluation import RandomGraphPolicy
-from sb3_hgrn.common.files import DamagedModelFileError, save_model_atomically
+from sb3_hgrn.common.files import DamagedModelFileError, save_model_atomically, write_text_atomically
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
-from sb3_hgrn.experiments.callbacks import rewind_team_returns
-from sb3_hgrn.experiments.config import RunConfig
+from sb3_hgrn.experiments.callbacks import (
+    AtomicCheckpointCallback,
+    remove_old_checkpoints,
+    rewind_team_returns,
+)
+from sb3_hgrn.experiments.config import ConfigError, RunConfig, resolve_config
 from sb3_hgrn.experiments.lock import PID_FILE, RunLock
-from sb3_hgrn.experiments.runs import check_stored_model_paths
-from sb3_hgrn.experiments.table1 import LOG_FILE, Job, run_jobs
+from sb3_hgrn.experiments.runs import check_stored_model_paths, trained_parameter_count
+from sb3_hgrn.experiments.table1 import LOG_FILE, Job, check_budget_of_folder, run_jobs
 from sb3_hgrn.sac_hgrn.policies import SACHGRNPolicy
 from tests.toy_envs import BadValueEnv, DictOnlyEnv
 
@@ -107,7 +112,7 @@ def test_resume_with_another_config_is_refused_naming_the_keys(root, capsys):
     assert snapshot(root) == before
 
 
-def test_overwrite_moves_the_old_run_aside_until_the_new_one_finishes(root, monkeypatch):
+def test_overwrite_moves_the_old_run_aside_and_keeps_it(root, monkeypatch):
     folder = run_of(root)
     old_eval = (folder / "eval.json").read_bytes()
 
@@ -124,8 +129,23 @@ def test_overwrite_moves_the_old_run_aside_until_the_new_one_finishes(root, monk
 
     assert main([*train_args(root), "--overwrite"]) == 0
     assert (folder / "eval.json").exists() and (folder / "model.zip").exists()
-    assert sorted(path.name for path in folder.parent.iterdir()) == ["seed_0", aside.name]  # the first stays
-    assert (aside / "eval.json").read_bytes() == old_eval
+    asides = sorted(folder.parent.glob("seed_0.replaced-*"))
+    assert len(asides) == 2 and aside in asides  # the killed attempt was moved aside too; both stay
+    assert (aside / "eval.json").read_bytes() == old_eval and (aside / "model.zip").is_file()
+
+
+def test_the_budget_check_reads_run_folders_not_runs_moved_aside(tmp_path):
+    def complete(name: str, budget: str) -> None:
+        folder = tmp_path / "surviving_v0" / "soft_hgrn" / name
+        folder.mkdir(parents=True)
+        (folder / "eval.json").write_text(json.dumps({"completed": True, "budget": budget}))
+
+    complete("seed_0", "ci")
+    complete("seed_0.replaced-20261201T161500Z", "cpu")
+    check_budget_of_folder(tmp_path, "ci")
+    complete("seed_1", "cpu")
+    with pytest.raises(ConfigError, match="seed_1 holds a run of budget 'cpu', not 'ci'"):
+        check_budget_of_folder(tmp_path, "ci")
 
 
 def test_rewind_team_returns_keeps_the_episodes_of_the_checkpoint(tmp_path):
@@ -164,6 +184,52 @@ def test_resume_skips_a_damaged_checkpoint(root, capsys):
     assert users_file.read_text() == "keep"
     results = json.loads((folder / "eval.json").read_text())
     assert results["resumed_from"] == "model_100_steps.zip" and results["agent_steps"] == 200
+
+
+def test_a_damaged_checkpoint_is_renamed_aside_not_written_over(root):
+    folder = run_of(root)
+    as_killed(folder)
+    damaged = folder / "checkpoints" / "model_200_steps.zip"
+    cut_short(damaged)
+    damaged_bytes = damaged.read_bytes()
+    with pytest.warns(UserWarning, match="Renamed the damaged model file .*model_200_steps.zip"):
+        assert main(train_args(root)) == 0
+    (aside,) = (folder / "checkpoints").glob("model_200_steps.damaged-*.zip")
+    assert aside.read_bytes() == damaged_bytes
+    assert SoftHGRN.load(damaged).num_timesteps == 200  # the resumed run's own checkpoint
+
+
+def never_learns(*args, **kwargs):
+    raise AssertionError("a finished model was trained again")
+
+
+@pytest.mark.parametrize("checkpoints", [False, True])
+def test_a_run_killed_during_its_final_evaluation_is_evaluated_not_retrained(root, monkeypatch, checkpoints):
+    folder = run_of(root)
+    (folder / "eval.json").unlink()
+    if not checkpoints:
+        shutil.rmtree(folder / "checkpoints")
+    before = snapshot(folder / "checkpoints") if checkpoints else {}
+    model_bytes = (folder / "model.zip").read_bytes()
+    monkeypatch.setattr(GraphOffPolicyAlgorithm, "learn", never_learns)
+    assert main(train_args(root)) == 0
+    assert (folder / "model.zip").read_bytes() == model_bytes
+    results = json.loads((folder / "eval.json").read_text())
+    assert results["completed"] and results["resumed_from"] == "model.zip" and results["agent_steps"] == 200
+    assert (snapshot(folder / "checkpoints") if checkpoints else {}) == before
+
+
+def test_a_damaged_final_model_is_renamed_aside_and_the_run_resumed(root):
+    folder = run_of(root)
+    (folder / "eval.json").unlink()
+    cut_short(folder / "model.zip")
+    damaged_bytes = (folder / "model.zip").read_bytes()
+    with pytest.warns(UserWarning, match="Renamed the damaged model file .*model.zip"):
+        assert main(train_args(root)) == 0
+    (aside,) = folder.glob("model.damaged-*.zip")
+    assert aside.read_bytes() == damaged_bytes
+    assert json.loads((folder / "eval.json").read_text())["resumed_from"] == "model_200_steps.zip"
+    assert SoftHGRN.load(folder / "model.zip").num_timesteps == 200
 
 
 def test_evaluate_skips_a_damaged_checkpoint_and_names_a_damaged_file(root, capsys):
@@ -226,6 +292,87 @@ def test_a_save_cut_short_leaves_the_old_file_and_no_partial_one(finished_root, 
     with pytest.raises(Interrupted):
         save_model_atomically(CutShort(model), target)
     assert target.read_bytes() == before and os.listdir(tmp_path) == ["model.zip"]
+
+
+def test_an_atomic_write_flushes_the_file_then_its_folder_after_the_rename(tmp_path, monkeypatch):
+    events = []
+    fsync, replace = os.fsync, os.replace
+
+    def recorded_fsync(descriptor):
+        flushed = os.fstat(descriptor)
+        events.append("fsync folder" if os.path.samestat(flushed, os.stat(tmp_path)) else "fsync file")
+        fsync(descriptor)
+
+    def recorded_replace(source, target):
+        events.append("replace")
+        replace(source, target)
+
+    monkeypatch.setattr(os, "fsync", recorded_fsync)
+    monkeypatch.setattr(os, "replace", recorded_replace)
+    write_text_atomically(tmp_path / "eval.json", "{}")
+    assert events == ["fsync file", "replace", "fsync folder"]
+    assert (tmp_path / "eval.json").read_text() == "{}"
+
+
+def checkpoint_files(folder: Path, steps: list[int], kinds=("", "replay_buffer_", "training_state_")) -> set:
+    """The names of the checkpoint files of ``steps`` agent-steps (zip and companions)."""
+    return {f"model_{kind}{step}_steps.{'zip' if not kind else 'pkl'}" for step in steps for kind in kinds}
+
+
+def test_old_checkpoints_are_removed_zip_first_keeping_the_newest(tmp_path, monkeypatch):
+    for name in checkpoint_files(tmp_path, [100, 200, 300, 400, 500]) | {"model_replay_buffer_50_steps.pkl"}:
+        (tmp_path / name).write_bytes(b"x")
+    others = {"model_200_steps.damaged-20261201T161500Z.zip", "notes.txt", ".model_100_steps.zip.7.tmp"}
+    for name in others:
+        (tmp_path / name).write_bytes(b"x")
+    unlinked = []
+    unlink = Path.unlink
+    monkeypatch.setattr(
+        Path, "unlink", lambda path, **kwargs: unlinked.append(path.name) or unlink(path, **kwargs)
+    )
+    # 400 was just written; 500 is newer (of an earlier attempt): kept, as are 400 and one older one.
+    assert remove_old_checkpoints(tmp_path, "model", 400, keep=2) == [200, 100, 50]
+    assert {path.name for path in tmp_path.iterdir()} == checkpoint_files(tmp_path, [300, 400, 500]) | others
+    for step in (200, 100):
+        assert unlinked.index(f"model_{step}_steps.zip") < unlinked.index(
+            f"model_replay_buffer_{step}_steps.pkl"
+        )
+        assert unlinked.index(f"model_{step}_steps.zip") < unlinked.index(
+            f"model_training_state_{step}_steps.pkl"
+        )
+    assert remove_old_checkpoints(tmp_path, "model", 500, keep=3) == []
+
+
+def test_train_keeps_the_newest_checkpoints_and_their_replay_buffers(tmp_path):
+    args = [*train_args(tmp_path, 500), "--save-replay-buffer", "--keep-checkpoints", "2"]
+    assert main(args) == 0
+    folder = run_of(tmp_path)
+    assert {path.name for path in (folder / "checkpoints").iterdir()} == checkpoint_files(folder, [400, 500])
+    assert SoftHGRN.load(folder / "model.zip").num_timesteps == 500
+    # Resuming with another count is the same run; 0 keeps every checkpoint.
+    as_killed(folder)
+    assert main([*train_args(tmp_path, 500), "--keep-checkpoints", "0"]) == 0
+    assert yaml.safe_load((folder / "config.yml").read_text())["keep_checkpoints"] == 0
+
+
+def test_keep_checkpoints_comes_from_the_budget_and_bad_counts_are_refused(tmp_path, capsys):
+    config = tmp_path / "keep.yml"
+    config.write_text("budgets: {ci: {keep_checkpoints: 1}}\n")
+    assert resolve_config("surviving_v0", "soft_hgrn", "ci", config_file=config).keep_checkpoints == 1
+    assert resolve_config("surviving_v0", "soft_hgrn", "ci").keep_checkpoints == 3
+    assert (
+        resolve_config(
+            "surviving_v0", "soft_hgrn", "ci", config_file=config, keep_checkpoints=0
+        ).keep_checkpoints
+        == 0
+    )
+    config.write_text("budgets: {ci: {keep_checkpoints: -1}}\n")
+    error = fails_with([*train_args(tmp_path), "--config", str(config)], capsys)
+    assert "budget ci: keep_checkpoints must be a whole number >= 0" in error and "-1" in error
+    error = fails_with([*train_args(tmp_path), "--keep-checkpoints", "-2"], capsys)
+    assert "--keep-checkpoints must be a whole number >= 0" in error
+    with pytest.raises(ValueError, match="keep must be a whole number >= 0"):
+        AtomicCheckpointCallback(10, str(tmp_path), keep=-1)
 
 
 def test_a_kill_while_saving_a_checkpoint_leaves_the_earlier_ones_whole(root, monkeypatch, capsys):
@@ -326,6 +473,19 @@ def small_env():
     env = make_graph_vec_env("surviving_v0", seed=0, env_kwargs={"n_agents": 5, "map_size": 10})
     yield env
     env.close()
+
+
+def numel(*modules: th.nn.Module) -> int:
+    return sum(param.numel() for module in modules for param in module.parameters())
+
+
+def test_n_parameters_counts_the_trained_weights_only(small_env, finished_root):
+    soft = SoftHGRN("GraphPolicy", small_env, policy_kwargs=dict(hidden_dim=16, average_tau=0.1), seed=0)
+    assert trained_parameter_count(soft) == numel(soft.policy.q_net) < numel(soft.policy)
+    sac = SACHGRN("GraphPolicy", small_env, policy_kwargs=dict(hidden_dim=16, n_critics=2), seed=0)
+    assert trained_parameter_count(sac) == numel(sac.policy.actor, sac.policy.critics) < numel(sac.policy)
+    stored = yaml.safe_load((run_of(finished_root) / "config.yml").read_text())["extra"]["n_parameters"]
+    assert stored == numel(SoftHGRN.load(run_of(finished_root) / "model.zip").policy.q_net)
 
 
 @pytest.mark.parametrize(

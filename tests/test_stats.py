@@ -3,6 +3,7 @@
 import csv
 import json
 import re
+import shutil
 import sys
 from pathlib import Path
 
@@ -107,9 +108,11 @@ SEED_SCORES = {
     ("surviving_v0", "soft_hgrn"): [10.0, 20.0, 30.0],
     ("surviving_v0", "soft_hgrn-G"): [0.0, 5.0, 8.0],
     ("surviving_v0", "random"): [-10.0, -10.0, -10.0],
+    ("surviving_v0", "dqn"): [0.0, 5.0, 10.0],  # the upper anchor, not among the compared presets
     ("pursuit_v0", "soft_hgrn"): [1.0, 2.0, 3.0],
     ("pursuit_v0", "soft_hgrn-G"): [1.0, 2.0, 3.0],
     ("pursuit_v0", "random"): [0.0, 0.0, 0.0],
+    ("pursuit_v0", "dqn"): [0.5, 1.0, 1.5],
     ("ctc_v0", "hgn"): [5.0, 6.0, 7.0],
     ("ctc_v0", "dgn"): [1.0, 2.0, 3.0],
 }
@@ -174,18 +177,20 @@ def test_table1_reports_iqm_intervals_beside_mean_and_std(results) -> None:
     assert "| Soft-HGRN | 20.0 [10.0, 30.0] | 20.0 +- 8.2 | 194 +- 41 |" in table
 
 
-def test_table1_normalises_across_envs_with_random_and_the_best_method(results) -> None:
+def test_table1_normalises_across_envs_between_random_and_the_fixed_reference(results) -> None:
+    """The upper anchor is DQN's mean, not the best method's: the best method is not pulled to 1."""
     results, _ = results
     aggregate = {row["preset"]: row for row in read_csv(results / "table1_aggregate.csv")}
-    # Surviving: (s + 10) / 30, Pursuit: s / 2. Soft-HGRN 0.67, 1, 1.33, 0.5, 1, 1.5: IQM of the middle 4 = 1
-    assert float(aggregate["soft_hgrn"]["normalised_iqm"]) == pytest.approx(1.0)
-    # Soft-HGRN -G: 0.33, 0.5, 0.6, 0.5, 1, 1.5: IQM of 0.5, 0.5, 0.6, 1 = 0.65
-    assert float(aggregate["soft_hgrn-G"]["normalised_iqm"]) == pytest.approx(0.65)
+    # Surviving: (s + 10) / 15, Pursuit: s / 1. Soft-HGRN 1.33, 2, 2.67, 1, 2, 3: IQM of the middle 4 = 2
+    assert float(aggregate["soft_hgrn"]["normalised_iqm"]) == pytest.approx(2.0)
+    # Soft-HGRN -G: 0.67, 1, 1.2, 1, 2, 3: IQM of 1, 1, 1.2, 2 = 1.3
+    assert float(aggregate["soft_hgrn-G"]["normalised_iqm"]) == pytest.approx(1.3)
     assert aggregate["soft_hgrn"]["runs_per_env"] == "3" and aggregate["soft_hgrn"]["envs"] == "2"
+    assert "dqn" not in aggregate  # the reference anchors the scale; only the table's presets are rows
     low, high = (float(aggregate["soft_hgrn"][key]) for key in ("normalised_iqm_low", "normalised_iqm_high"))
-    assert low < 1.0 < high
+    assert low < 2.0 < high
     table = (results / "table1.md").read_text()
-    assert "Surviving: 0 = Random -10.0, 1 = Soft-HGRN 20.0" in table and "| Soft-HGRN | 1.00 [" in table
+    assert "Surviving: 0 = Random -10.0, 1 = DQN 5.0" in table and "| Soft-HGRN | 2.00 [" in table
     profile = read_csv(results / "table1_profile.csv")
     assert (results / "table1_profile.png").stat().st_size > 0 and {row["preset"] for row in profile} == {
         "soft_hgrn",
@@ -193,6 +198,17 @@ def test_table1_normalises_across_envs_with_random_and_the_best_method(results) 
     }
     first = next(row for row in profile if row["preset"] == "soft_hgrn")
     assert float(first["tau"]) == 0.0 and float(first["fraction"]) == 1.0  # every normalised score > 0
+
+
+def test_without_a_reference_run_nothing_is_normalised(tmp_path) -> None:
+    results = fake_results(tmp_path)
+    shutil.rmtree(results / "table1" / "pursuit_v0" / "dqn")
+    write_tables(results, "ci", ["surviving_v0", "pursuit_v0"], ["soft_hgrn"], [0, 1, 2], reps=REPS)
+    aggregate = read_csv(results / "table1_aggregate.csv")
+    assert [row["envs"] for row in aggregate] == ["1"]  # Pursuit, without DQN runs, is left out
+    shutil.rmtree(results / "table1" / "surviving_v0" / "dqn")
+    write_tables(results, "ci", ["surviving_v0", "pursuit_v0"], ["soft_hgrn"], [0, 1, 2], reps=REPS)
+    assert "No env has a Random run and a DQN run above it" in (results / "table1.md").read_text()
 
 
 def test_table1_reports_the_key_comparisons(results) -> None:

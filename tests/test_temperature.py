@@ -83,6 +83,34 @@ def test_alpha_stays_above_its_floor():
     assert temperature.alpha.item() == pytest.approx(1e-5)
 
 
+@pytest.mark.parametrize("log_space", [False, True])
+@pytest.mark.parametrize("optimizer, learning_rate", [("adam", 1e-3), ("sgd", 0.1)])
+def test_an_absent_group_keeps_its_alpha_and_optimiser_state(optimizer, learning_rate, log_space):
+    """Group 1 is present for 20 updates (entropy above target: its alpha falls), then absent for 5:
+    Adam's momentum must not move it on (it did, from 0.0951 to 0.0917 in 5 updates). Group 0 is
+    present throughout and keeps moving."""
+    temperature = EntropyTemperature(0.1, log_space=log_space, n_groups=2)
+    controller = TemperatureController(
+        temperature, target=th.tensor([0.5, 0.5]), optimizer=optimizer, learning_rate=learning_rate
+    )
+    if optimizer == "sgd":
+        controller.optimizer.param_groups[0]["momentum"] = 0.9
+    for _ in range(20):
+        controller.update(th.tensor([1.0, 1.0]))
+    alpha = temperature.alpha.detach().clone()
+    state = {name: value.clone() for name, value in controller.optimizer.state[temperature.param].items()}
+    for _ in range(5):
+        controller.update(th.tensor([1.0, float("nan")]))
+    assert temperature.alpha[1].item() == alpha[1].item() and temperature.alpha[0].item() < alpha[0].item()
+    after = controller.optimizer.state[temperature.param]
+    for name in ("exp_avg", "exp_avg_sq") if optimizer == "adam" else ("momentum_buffer",):
+        assert (
+            after[name][1].item() == state[name][1].item() and after[name][0].item() != state[name][0].item()
+        )
+    controller.update(th.tensor([1.0, 1.0]))  # present again: it moves on from where it stood
+    assert temperature.alpha[1].item() < alpha[1].item()
+
+
 def test_bad_temperature_arguments():
     with pytest.raises(ValueError, match="initial_alpha"):
         EntropyTemperature(0.0)

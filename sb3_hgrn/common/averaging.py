@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch as th
 from torch import nn
 from torch.optim.swa_utils import AveragedModel
@@ -30,10 +32,47 @@ class PolyakWeight:
         th._foreach_add_(averaged, steps)
 
 
-def polyak_average(network: nn.Module, tau: float) -> AveragedModel:
-    """An untrained :class:`~torch.optim.swa_utils.AveragedModel` of ``network``; its
-    ``update_parameters(network)`` after each gradient step keeps the average of :class:`PolyakWeight`."""
-    average = AveragedModel(network, multi_avg_fn=PolyakWeight(tau))
+class PolyakAverage(AveragedModel):
+    """An :class:`~torch.optim.swa_utils.AveragedModel` of :class:`PolyakWeight` whose update never
+    waits for the device.
+
+    ``AveragedModel.update_parameters`` reads its count ``n_averaged`` (a device tensor) on the host
+    twice per call, to copy the first iterate and to average the later ones, which makes the host
+    wait for the device at every gradient step. Here whether the next update is the first is a
+    Python flag, set when the average is made and whenever a state dict is loaded into it (one read of
+    the count per load); the update runs the same tensor operations as ``AveragedModel``'s, so the
+    averages are bitwise the same. Its state dict is ``AveragedModel``'s (``module.*``,
+    ``n_averaged``).
+    """
+
+    def __init__(self, network: nn.Module, tau: float):
+        super().__init__(network, multi_avg_fn=PolyakWeight(tau))
+        self.copies_next = True
+        self.register_load_state_dict_post_hook(PolyakAverage._count_loaded)
+
+    def update_parameters(self, model: nn.Module) -> None:
+        """Average ``model``'s parameters in (the first call copies them) and copy its buffers."""
+        averaged = [param.detach() for param in self.module.parameters()]
+        current = [param.detach() for param in model.parameters()]
+        if self.copies_next:
+            th._foreach_copy_(averaged, current)
+        else:
+            self.multi_avg_fn(averaged, current, self.n_averaged)
+        for own, theirs in zip(self.module.buffers(), model.buffers(), strict=True):
+            own.detach().copy_(theirs.detach())
+        self.n_averaged += 1
+        self.copies_next = False
+
+    @staticmethod
+    def _count_loaded(average: PolyakAverage, incompatible_keys: Any) -> None:
+        """After a state dict is loaded: the next update is the first where the loaded count is 0."""
+        average.copies_next = bool(average.n_averaged == 0)
+
+
+def polyak_average(network: nn.Module, tau: float) -> PolyakAverage:
+    """An untrained :class:`PolyakAverage` of ``network``; its ``update_parameters(network)`` after
+    each gradient step keeps the average of :class:`PolyakWeight`."""
+    average = PolyakAverage(network, tau)
     average.requires_grad_(False)
     average.train(False)
     return average

@@ -2,13 +2,15 @@
 
 A file written with :func:`atomic_write` goes to a temporary file in the same folder, is flushed to
 disk and then renamed over the target (``os.replace``), so a process killed at any moment leaves
-either the old file or the new one, never half of one.
+either the old file or the new one, never half of one. The folder is flushed after the rename too,
+so the new name survives a power cut or an operating system crash once the write has returned.
 """
 
 from __future__ import annotations
 
 import contextlib
 import csv
+import errno
 import json
 import os
 import re
@@ -46,8 +48,27 @@ def atomic_write(path: str | os.PathLike, mode: str = "w") -> Iterator[IO[Any]]:
             file.flush()
             os.fsync(file.fileno())
         os.replace(tmp, path)
+        sync_folder(path.parent)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def sync_folder(folder: str | os.PathLike) -> None:
+    """Flush ``folder``'s entries (names created, renamed or removed in it) to disk.
+
+    Where folders cannot be opened for this (Windows), nothing is done.
+    """
+    try:
+        descriptor = os.open(folder, os.O_RDONLY)
+    except (PermissionError, IsADirectoryError):  # Windows cannot open a folder as a file
+        return
+    try:
+        os.fsync(descriptor)
+    except OSError as error:  # file systems that cannot flush a folder say so with EINVAL
+        if error.errno not in (errno.EINVAL, errno.ENOTSUP):
+            raise
+    finally:
+        os.close(descriptor)
 
 
 def remove_temporary_files(folder: str | os.PathLike) -> int:

@@ -10,7 +10,11 @@ to the gradient (Adam normalises gradients, so a gradient bound would not bound 
 stays above ``min_alpha``.
 
 With several agent groups every group has its own alpha and its own target from its own action
-count, and each group's alpha follows the mean entropy of that group's agents.
+count, and each group's alpha follows the mean entropy of that group's agents. A group absent from
+a batch (no living agent of it) is left exactly as it was by that update: its alpha and its
+optimiser state (Adam's moment estimates, SGD's momentum) are restored after the step, so momentum
+gathered while it was present does not move it while it is absent. The optimiser's step count is
+shared by all groups and does advance.
 """
 
 from __future__ import annotations
@@ -117,12 +121,16 @@ class TemperatureController:
 
     def update(self, entropy: th.Tensor) -> float:
         """One step toward the target given the measured mean entropy of every group ``(n_groups,)``
-        (NaN for a group absent from the batch: its alpha stays); returns alpha's mean gradient."""
+        (NaN for a group absent from the batch: its alpha and optimiser state stay as they are);
+        returns alpha's mean gradient."""
         temperature = self.temperature
         self.optimizer.zero_grad()
         entropy = entropy.detach().reshape(-1)
-        gap = th.where(th.isnan(entropy), th.zeros_like(entropy), entropy - self.target.to(entropy))
+        absent = th.isnan(entropy)
+        gap = th.where(absent, th.zeros_like(entropy), entropy - self.target.to(entropy))
         before = temperature.alpha.detach().clone()
+        kept_param = temperature.param.detach().clone()
+        kept_state = self._per_group_state(temperature.param)
         loss = (temperature.param * gap).sum()  # d loss / d param = H - H_target
         loss.backward()
         gradient = float(temperature.param.grad.mean())
@@ -132,5 +140,18 @@ class TemperatureController:
                 before * (1.0 - self.max_step_ratio), before * (1.0 + self.max_step_ratio)
             )
             alpha = alpha.clamp(min=self.min_alpha)
-            temperature.param.copy_(alpha.log() if temperature.log_space else alpha)
+            stepped = alpha.log() if temperature.log_space else alpha
+            temperature.param.copy_(th.where(absent, kept_param, stepped))
+            state = self.optimizer.state[temperature.param]
+            for name, value in kept_state.items():
+                state[name].copy_(th.where(absent, value, state[name]))
         return gradient
+
+    def _per_group_state(self, param: nn.Parameter) -> dict[str, th.Tensor]:
+        """Copies of the optimiser's state tensors of ``param`` that hold one entry per group
+        ``(n_groups,)`` (Adam's moments, SGD's momentum buffer), by name; none before its first step."""
+        return {
+            name: value.detach().clone()
+            for name, value in self.optimizer.state[param].items()
+            if isinstance(value, th.Tensor) and value.shape == param.shape
+        }

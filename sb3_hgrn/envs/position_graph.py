@@ -4,7 +4,8 @@
 a torus, in one of three modes: the ``k`` nearest agents, every agent within a ``radius`` (the nearest
 ones up to a list width), or the full graph. Its output is the neighbour-list format of every sb3_hgrn
 env: row ``i`` of an ``(n_agents, max_neighbors)`` int64 array holds ``i`` itself, then its
-neighbours nearest first (equal distances by lower index), padded with ``-1``.
+neighbours nearest first (equal distances by lower index), padded with ``-1``. Agents that died or
+left take no place in any list: only the living agents are linked.
 
 Neighbours are found with a KD-tree (``scipy.spatial.cKDTree``): building it costs
 ``O(n log n)`` and each agent's query ``O(width log n)``, so in the ``k`` and radius modes the cost is
@@ -76,28 +77,57 @@ class PositionGraph:
         else:
             self.max_neighbors = self.n_agents
 
-    def neighbors(self, positions: np.ndarray) -> np.ndarray:
-        """Neighbour lists of agents at ``positions`` ``(n_agents, dim)`` (any real dtype, finite).
+    def neighbors(self, positions: np.ndarray, alive: np.ndarray | None = None) -> np.ndarray:
+        """Neighbour lists of agents at ``positions`` ``(n_agents, dim)`` (any real dtype).
 
-        Returns ``(n_agents, max_neighbors)`` int64: row ``i`` starts with ``i``, then the agents
-        linked to ``i`` nearest first, equal distances by lower index (which of several agents at
-        exactly the same distance makes the cut of a full row is unspecified); ``-1`` pads.
+        ``alive`` ``(n_agents,)`` bool names the agents still in the episode (``None``: all). Only
+        living agents are linked: a gone agent takes no place in any list, its position is not read
+        (it may be anything, ``nan`` included) and its own row holds only itself. The positions of
+        the living agents must be finite.
+
+        Returns ``(n_agents, max_neighbors)`` int64: row ``i`` starts with ``i``, then the living
+        agents linked to ``i`` nearest first, equal distances by lower index (which of several agents
+        at exactly the same distance makes the cut of a full row is unspecified); ``-1`` pads.
         """
-        points, sides = self._checked(positions)
-        n_queried = min(self.max_neighbors, self.n_agents)
+        living = self._living(alive)
+        points, sides = self._checked(positions, living)
+        lists = np.full((self.n_agents, self.max_neighbors), -1, dtype=np.int64)
+        lists[:, 0] = np.arange(self.n_agents)
+        if len(living):
+            among_living = self._lists_among(points, sides)
+            lists[living] = np.append(living, -1)[among_living]  # entry -1 reads the appended -1
+        return lists
+
+    def _lists_among(self, points: np.ndarray, sides: np.ndarray | None) -> np.ndarray:
+        """Neighbour lists ``(n_points, max_neighbors)`` int64 of ``points`` ``(n_points, dim)``
+        (at least one), in their own numbering."""
+        n_points = len(points)
+        n_queried = min(self.max_neighbors, n_points)
         bound = np.inf if self.radius is None else np.nextafter(self.radius, np.inf)
         tree = cKDTree(points, boxsize=sides)
         distances, others = tree.query(points, k=n_queried, distance_upper_bound=bound)
-        shape = (self.n_agents, n_queried)  # a query for one neighbour returns 1-D arrays
+        shape = (n_points, n_queried)  # a query for one neighbour returns 1-D arrays
         lists = _self_first_rows(distances.reshape(shape), others.reshape(shape))
-        lists[lists == self.n_agents] = -1  # cKDTree marks "none within the radius" with n_agents
+        lists[lists == n_points] = -1  # cKDTree marks "none within the radius" with n_points
         if n_queried < self.max_neighbors:
             lists = np.pad(lists, ((0, 0), (0, self.max_neighbors - n_queried)), constant_values=-1)
         return lists
 
-    def _checked(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        """``positions`` as float64 ``(n_agents, dim)``, wrapped into the world if it is a torus,
-        and the torus's sides ``(dim,)`` (``None`` without one)."""
+    def _living(self, alive: np.ndarray | None) -> np.ndarray:
+        """Indices ``(n_living,)`` int64 of the living agents, ascending, from ``alive``."""
+        if alive is None:
+            return np.arange(self.n_agents)
+        mask = np.asarray(alive)
+        if mask.shape != (self.n_agents,) or mask.dtype != bool:
+            raise ValueError(
+                f"alive must be a bool array of shape (n_agents={self.n_agents},), got {mask.dtype} "
+                f"{mask.shape}."
+            )
+        return np.flatnonzero(mask)
+
+    def _checked(self, positions: np.ndarray, living: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """The positions of the ``living`` agents as float64 ``(n_living, dim)``, wrapped into the
+        world if it is a torus, and the torus's sides ``(dim,)`` (``None`` without one)."""
         points = np.asarray(positions)
         if points.ndim != 2 or points.shape[0] != self.n_agents or points.shape[1] < 1:
             raise ValueError(
@@ -105,9 +135,9 @@ class PositionGraph:
             )
         if points.dtype.kind not in "biuf":
             raise ValueError(f"positions must be real numbers, got dtype {points.dtype}.")
-        points = points.astype(np.float64)
+        points = points[living].astype(np.float64)
         if not np.isfinite(points).all():
-            raise ValueError("positions must be finite (no nan or inf).")
+            raise ValueError("positions must be finite (no nan or inf) where agents are alive.")
         if self.world_size is None:
             return points, None
         if self.world_size.size not in (1, points.shape[1]):

@@ -59,6 +59,9 @@ class GraphFromPositions(BaseParallelWrapper):
     Every step (and after ``reset``) ``positions(env)`` is called once, when the graph is first
     asked for, with the env given here, and must return the agents' float positions
     ``(n_agents, dim)`` in ``possible_agents`` order (any ``dim >= 1``). Distances are Euclidean.
+    Only the agents in the env's ``agents`` list are linked: an agent that died or left takes no
+    place in any list, its row of ``positions`` is not read (any value, ``nan`` included, will do)
+    and its own list holds only itself.
 
     Args:
         env: the PettingZoo ``ParallelEnv`` (or parallelizable AEC env, see :func:`as_parallel_env`).
@@ -97,6 +100,7 @@ class GraphFromPositions(BaseParallelWrapper):
         self.graph = PositionGraph(len(self.env.possible_agents), k, radius, max_neighbors, world_size)
         self.max_neighbors = self.graph.max_neighbors
         self._positions = functools.partial(positions, env)
+        self._names = np.asarray(self.env.possible_agents)
         self._lists: np.ndarray | None = None
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
@@ -110,14 +114,22 @@ class GraphFromPositions(BaseParallelWrapper):
     def neighbors(self) -> np.ndarray:
         """Graph of the current positions: ``(n_agents, max_neighbors)`` int64, read-only.
 
-        Row ``i`` is agent ``i`` itself, then its neighbours nearest first, ``-1`` pads (see
+        Row ``i`` is agent ``i`` itself, then its living neighbours nearest first, ``-1`` pads (see
         :meth:`PositionGraph.neighbors`); built at most once per step.
         """
         if self._lists is None:
-            lists = self.graph.neighbors(self._positions())
+            lists = self.graph.neighbors(self._positions(), self._alive())
             lists.flags.writeable = False
             self._lists = lists
         return self._lists
+
+    def _alive(self) -> np.ndarray | None:
+        """``(n_agents,)`` bool: which possible agents are in the env's ``agents`` list; ``None``
+        when all are."""
+        agents = list(getattr(self.env, "agents", None) or ())
+        if len(agents) == len(self._names):
+            return None
+        return np.isin(self._names, np.asarray(agents, dtype=self._names.dtype))
 
 
 class TeamFigures(BaseParallelWrapper):

@@ -6,6 +6,7 @@ import functools
 import json
 import os
 import pickle
+import re
 import time
 import warnings
 from pathlib import Path
@@ -127,10 +128,16 @@ class AtomicCheckpointCallback(CheckpointCallback):
     both written before the zip: a checkpoint zip that exists has them. An env that cannot be pickled
     (e.g. Pursuit's MAgent) gets no training state, with one warning.
 
+    Only the newest ``keep`` checkpoints stay: once a checkpoint's zip is written, the files of the
+    checkpoints older than it but its ``keep - 1`` predecessors are removed (each zip before its
+    companions, so a zip that exists still has them). The checkpoint just written and any newer ones
+    are never removed, so the one a resumed run would load stays; neither are files of other names.
+
     :param save_freq: a checkpoint every ``save_freq`` vec-steps.
     :param save_path: folder of the checkpoints.
     :param name_prefix: start of the file names.
     :param save_replay_buffer: also save the replay buffer.
+    :param keep: checkpoints kept, the newest ones (``0``: all).
     """
 
     def __init__(
@@ -139,8 +146,11 @@ class AtomicCheckpointCallback(CheckpointCallback):
         save_path: str,
         name_prefix: str = "rl_model",
         save_replay_buffer: bool = False,
+        keep: int = 0,
         verbose: int = 0,
     ):
+        if not isinstance(keep, int) or isinstance(keep, bool) or keep < 0:
+            raise ValueError(f"keep must be a whole number >= 0 (checkpoints kept, 0: all), got {keep!r}.")
         super().__init__(
             save_freq,
             save_path,
@@ -150,6 +160,7 @@ class AtomicCheckpointCallback(CheckpointCallback):
         )
         self.due = False
         self.saves_training_state = True
+        self.keep = keep
 
     def _on_step(self) -> bool:
         if self.num_timesteps % (self.save_freq * self.training_env.num_envs) == 0:
@@ -176,6 +187,8 @@ class AtomicCheckpointCallback(CheckpointCallback):
         save_model_atomically(self.model, path)
         if self.verbose >= 2:
             print(f"Saving model checkpoint to {path}")
+        if self.keep:
+            remove_old_checkpoints(Path(self.save_path), self.name_prefix, self.num_timesteps, self.keep)
 
     def _save_training_state(self, path: Path) -> None:
         """Pickle the model's training state to ``path``; warn once and stop when the env cannot be."""
@@ -190,6 +203,32 @@ class AtomicCheckpointCallback(CheckpointCallback):
             self.saves_training_state = False
             return
         save_atomically(functools.partial(pickle.dump, state, protocol=pickle.HIGHEST_PROTOCOL), path)
+
+
+CHECKPOINT_KINDS = ("replay_buffer", "training_state")
+"""The companions saved beside a checkpoint zip (see :func:`checkpoint_companion`)."""
+
+
+def remove_old_checkpoints(folder: Path, prefix: str, newest: int, keep: int) -> list[int]:
+    """Remove the checkpoints in ``folder`` older than the one of ``newest`` agent-steps but the
+    ``keep - 1`` next older ones: each zip first, then its companions (and companions whose zip is
+    gone, left by a kill). Checkpoints of ``newest`` agent-steps or more are kept.
+
+    :return: the agent-steps of the checkpoints removed, newest first.
+    """
+    kinds = "|".join(CHECKPOINT_KINDS)
+    pattern = re.compile(rf"{re.escape(prefix)}_(?:(?:{kinds})_)?(\d+)_steps\.(?:zip|pkl)")
+    steps: dict[int, list[Path]] = {}
+    for path in folder.iterdir():
+        match = pattern.fullmatch(path.name)
+        if match:
+            steps.setdefault(int(match.group(1)), []).append(path)
+    older = sorted((step for step in steps if step < newest), reverse=True)
+    removed = older[keep - 1 :]
+    for step in removed:
+        for path in sorted(steps[step], key=lambda path: path.suffix != ".zip"):  # the zip first
+            path.unlink(missing_ok=True)
+    return removed
 
 
 def checkpoint_companion(checkpoint: str | os.PathLike, kind: str) -> Path:

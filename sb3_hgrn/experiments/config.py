@@ -57,8 +57,10 @@ BUDGETS = ("ci", "cpu", "paper")
 
 BUDGET_FIELDS = {
     "description", "env_kwargs", "n_envs", "eval_n_envs", "total_timesteps", "eval_episodes",
-    "eval_epsilons", "paper",
+    "eval_epsilons", "paper", "keep_checkpoints",
 }  # fmt: skip
+KEEP_CHECKPOINTS = 3
+"""Checkpoints a run keeps by default (the newest ones; ``0`` keeps all)."""
 RANDOM_POLICY = "random"
 """Run name of the uniformly random policy (evaluated without training, as the tables' anchor)."""
 RESERVED_PARAMS = {"policy", "env", "seed", "verbose", "tensorboard_log", "device", "_init_setup_model"}
@@ -204,6 +206,17 @@ def _check_config(config: Any, where: str, complete: bool) -> None:
         for key in REQUIRED_BUDGET_FIELDS:
             if (complete or key in section) and (not isinstance(section.get(key), int) or section[key] < 1):
                 raise ConfigError(f"{where} budget {budget}: {key} must be a positive integer.")
+        if "keep_checkpoints" in section:
+            check_keep_checkpoints(section["keep_checkpoints"], f"{where} budget {budget}: keep_checkpoints")
+
+
+def check_keep_checkpoints(value: Any, name: str) -> int:
+    """``value`` as a count of checkpoints to keep, or :class:`ConfigError` naming ``name``."""
+    if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+        raise ConfigError(
+            f"{name} must be a whole number >= 0 (the newest checkpoints kept, 0: all), got {value!r}."
+        )
+    return value
 
 
 def _check_sections(section: Any, fields: set[str], where: str) -> None:
@@ -281,6 +294,8 @@ class RunConfig:
     description: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
     """Figures added when the run is set up (algorithm class, resolved kwargs, agent count, version)."""
+    keep_checkpoints: int = KEEP_CHECKPOINTS
+    """Checkpoints kept (the newest ones; ``0``: all); not part of what the run computes."""
 
     def to_dict(self) -> dict[str, Any]:
         """Plain data for ``config.yml``."""
@@ -319,10 +334,13 @@ def resolve_config(
     params: dict[str, Any] | None = None,
     env_params: dict[str, Any] | None = None,
     config_file: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
+    keep_checkpoints: int | None = None,
 ) -> RunConfig:
     """The configuration of one run of ``preset`` on ``env`` at ``budget``.
 
     :param timesteps: agent-steps of training instead of the budget's ``total_timesteps``.
+    :param keep_checkpoints: checkpoints to keep instead of the budget's ``keep_checkpoints``
+        (default :data:`KEEP_CHECKPOINTS`; ``0``: all).
     :param params: algorithm keyword arguments over the config files' (``--param``).
     :param env_params: env keyword arguments over the config files' (``--env-param``).
     :param config_file: config files of one's own merged over the packaged one, in order (``--config``,
@@ -342,7 +360,10 @@ def resolve_config(
     check_params(preset, hyperparams)
     if timesteps is not None and timesteps < 1:
         raise ConfigError(f"--timesteps must be a positive number of agent-steps, got {timesteps}.")
-    return _budget_config(configs, env, preset, budget, seed, timesteps, hyperparams, env_params)
+    config = _budget_config(configs, env, preset, budget, seed, timesteps, hyperparams, env_params)
+    if keep_checkpoints is not None:
+        config.keep_checkpoints = check_keep_checkpoints(keep_checkpoints, "--keep-checkpoints")
+    return config
 
 
 def random_policy_config(env: str, budget: str = "cpu", seed: int = 0) -> RunConfig:
@@ -452,4 +473,5 @@ def _budget_config(
         paper=bool(section.get("paper", False)),
         hyperparams=hyperparams,
         description=str(section.get("description", "")),
+        keep_checkpoints=int(section.get("keep_checkpoints", KEEP_CHECKPOINTS)),
     )

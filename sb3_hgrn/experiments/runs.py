@@ -16,8 +16,10 @@ holds::
     .lock, .lock.pid    the lock of the process working in the folder, and its pid
 
 Every file but ``team_returns.csv`` (appended to row by row) is written atomically; the temporary
-file of a write cut short by a kill is removed when a run starts in the folder again. ``--overwrite``
-moves an old run to ``<folder>.replaced-<UTC time>/`` until the new run has finished.
+file of a write cut short by a kill is removed when a run starts in the folder again. No model is
+ever deleted here: ``--overwrite`` moves an old run to ``<folder>.replaced-<UTC time>/``, which is
+kept, a damaged model zip is renamed to ``<name>.damaged-<UTC time>.zip`` beside it, and a run killed
+after saving ``model.zip`` but before writing ``eval.json`` is evaluated, not trained again.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import importlib
 import inspect
 import itertools
 import json
+import operator
 import os
 import pickle
 import re
@@ -35,7 +38,7 @@ import time
 import warnings
 from collections.abc import Collection
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import yaml
@@ -130,23 +133,23 @@ def _first_good(paths: list[Path]) -> Path | None:
     return None
 
 
-def latest_checkpoint(folder: Path) -> Path | None:
-    """The undamaged checkpoint with the most agent-steps in ``folder/checkpoints``, if any (damaged
-    ones are skipped with a warning)."""
-    return _first_good(_checkpoints(folder))
-
-
 RUN_ENTRIES = (CONFIG_FILE, MODEL_FILE, EVAL_FILE, TEAM_RETURNS_FILE, CHECKPOINT_DIR, TENSORBOARD_DIR)
 """What a run writes into its folder (other files, e.g. a sweep's ``train.log``, are not the run's)."""
 _MISSING = object()
 
 
+UNCOMPARED_KEYS = ("extra", "keep_checkpoints")
+"""Top-level keys of ``config.yml`` that may change when a run resumes: ``extra`` records versions
+and the command line, ``keep_checkpoints`` how many checkpoints stay on disk; neither changes what the
+run computes."""
+
+
 def config_differences(stored: dict[str, Any], current: dict[str, Any], prefix: str = "") -> list[str]:
-    """Dotted keys whose values differ between two configurations (the top-level ``extra`` is
-    ignored: it records versions and the command line, not the run)."""
+    """Dotted keys whose values differ between two configurations (the top-level
+    :data:`UNCOMPARED_KEYS` are ignored)."""
     differences = []
     for key in dict.fromkeys([*stored, *current]):
-        if not prefix and key == "extra":
+        if not prefix and key in UNCOMPARED_KEYS:
             continue
         old, new = stored.get(key, _MISSING), current.get(key, _MISSING)
         if isinstance(old, dict) and isinstance(new, dict):
@@ -181,50 +184,100 @@ def _has_run(folder: Path) -> bool:
     return any((folder / name).exists() for name in RUN_ENTRIES)
 
 
-def _clear_run(folder: Path) -> None:
-    """Remove the files a previous run left in ``folder`` (other files, e.g. a sweep's log, stay)."""
-    for name in (CONFIG_FILE, MODEL_FILE, EVAL_FILE, TEAM_RETURNS_FILE):
+def _clear_logs(folder: Path) -> None:
+    """Remove the logs of a run killed before it saved any model, which starts again from scratch:
+    its ``config.yml``, ``eval.json``, ``team_returns.csv`` and ``tensorboard/``. Models (``model.zip``,
+    ``checkpoints/``) are not touched; other files, e.g. a sweep's log, stay."""
+    for name in (CONFIG_FILE, EVAL_FILE, TEAM_RETURNS_FILE):
         (folder / name).unlink(missing_ok=True)
-    for name in (CHECKPOINT_DIR, TENSORBOARD_DIR):
-        shutil.rmtree(folder / name, ignore_errors=True)
+    shutil.rmtree(folder / TENSORBOARD_DIR, ignore_errors=True)
+
+
+def _aside_path(path: Path, label: str) -> Path:
+    """A free name beside ``path``: ``<stem>.<label>-<UTC time>[-<i>]<suffix>``
+    (``seed_0`` -> ``seed_0.replaced-20261201T161500Z``, ``model.zip`` -> ``model.damaged-...zip``)."""
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    names = (
+        path.with_name(f"{path.stem}.{label}-{stamp}{f'-{index}' if index else ''}{path.suffix}")
+        for index in itertools.count()
+    )
+    return next(aside for aside in names if not aside.exists())
 
 
 def move_run_aside(folder: Path) -> Path | None:
     """Move the run files of ``folder`` into ``<folder>.replaced-<UTC time>/`` beside it (other files
-    stay); returns that folder, ``None`` when there was nothing to move."""
+    stay); returns that folder, ``None`` when there was nothing to move. The folder is kept."""
     if not _has_run(folder):
         return None
-    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-    aside = folder.with_name(f"{folder.name}.replaced-{stamp}")
-    for index in itertools.count(1):
-        if not aside.exists():
-            break
-        aside = folder.with_name(f"{folder.name}.replaced-{stamp}-{index}")
+    aside = _aside_path(folder, "replaced")
     aside.mkdir(parents=True)
     for name in RUN_ENTRIES:
         if (folder / name).exists():
-            os.replace(folder / name, aside / name)
+            os.rename(folder / name, aside / name)  # aside is new and empty: nothing is replaced
     return aside
 
 
-def prepare_run_folder(folder: Path, config: RunConfig, overwrite: bool) -> tuple[Path | None, Path | None]:
-    """Decide how a run starts in ``folder``: ``(checkpoint to resume or None, folder the old run was
-    moved to or None)``.
+def _set_damaged_aside(path: Path) -> None:
+    """Rename the damaged model zip ``path`` to ``<stem>.damaged-<UTC time>.zip`` beside it, with a
+    warning: kept for inspection, out of the way of the files a run writes."""
+    aside = _aside_path(path, "damaged")
+    os.rename(path, aside)
+    warnings.warn(f"Renamed the damaged model file {path} to {aside.name}", stacklevel=3)
+
+
+def _finished_model(folder: Path) -> Path | None:
+    """The folder's ``model.zip`` if it is whole: a run that saved its final model (a damaged one is
+    set aside, see :func:`_set_damaged_aside`)."""
+    path = folder / MODEL_FILE
+    if not path.is_file():
+        return None
+    try:
+        check_model_file(path)
+    except DamagedModelFileError:
+        _set_damaged_aside(path)
+        return None
+    return path
+
+
+def _resumable_checkpoint(folder: Path) -> Path | None:
+    """The newest whole checkpoint of ``folder``; the damaged ones newer than it are set aside (see
+    :func:`_set_damaged_aside`), so the resumed run never writes over them."""
+    checkpoints = _checkpoints(folder)
+    checkpoint = _first_good(checkpoints)
+    for damaged in checkpoints[: checkpoints.index(checkpoint) if checkpoint else len(checkpoints)]:
+        _set_damaged_aside(damaged)
+    return checkpoint
+
+
+class RunStart(NamedTuple):
+    """How a run starts in its folder (see :func:`prepare_run_folder`)."""
+
+    model_file: Path | None
+    """The model to load (``None``: a fresh one): the checkpoint to resume, or the final model."""
+    finished: bool
+    """``model_file`` is the run's final ``model.zip``: the run is evaluated, not trained further."""
+    moved_aside: Path | None
+    """Where ``--overwrite`` moved the old run (kept), ``None`` if it did not."""
+
+
+def prepare_run_folder(folder: Path, config: RunConfig, overwrite: bool) -> RunStart:
+    """Decide how a run starts in ``folder``.
 
     With ``overwrite`` an old run is moved aside (:func:`move_run_aside`). Otherwise a complete run
-    is refused, a run of another configuration is refused naming the differing keys, a run of the
-    same configuration resumes from its latest checkpoint, and one without checkpoints (killed before
-    its first) is cleared.
+    is refused, a run of another configuration is refused naming the differing keys, and a run of
+    the same configuration goes on: with a whole ``model.zip`` (killed during its final evaluation)
+    it is evaluated, else it resumes from its latest whole checkpoint, else (killed before its first)
+    it starts again, its logs cleared. No model is deleted: damaged ones are renamed aside.
     """
     if overwrite:
-        return None, move_run_aside(folder)
+        return RunStart(None, False, move_run_aside(folder))
     if read_eval(folder) is not None:
         raise ConfigError(
             f"{folder} already holds a completed run ({EVAL_FILE}); pass --overwrite to redo it "
             "(the old run is moved aside)."
         )
     if not _has_run(folder):
-        return None, None
+        return RunStart(None, False, None)
     stored, current = _stored_config(folder), _plain(config.to_dict())
     if stored is None:
         raise ConfigError(
@@ -238,10 +291,13 @@ def prepare_run_folder(folder: Path, config: RunConfig, overwrite: bool) -> tupl
             f"{_describe_differences(stored, current, differences)}. Pass --overwrite to replace it "
             "(the old run is moved aside), or use another --folder."
         )
-    checkpoint = latest_checkpoint(folder)
+    finished = _finished_model(folder)
+    if finished is not None:
+        return RunStart(finished, True, None)
+    checkpoint = _resumable_checkpoint(folder)
     if checkpoint is None:
-        _clear_run(folder)
-    return checkpoint, None
+        _clear_logs(folder)
+    return RunStart(checkpoint, False, None)
 
 
 def _tensorboard_dir(folder: Path, verbose: int) -> str | None:
@@ -307,9 +363,10 @@ def train_run(
     checkpoint (``team_returns.csv`` rewound to the checkpoint's episodes) with the replay buffer saved
     beside it, if any, else with an empty one, and with its training state (env copies, last
     observation, recurrent and random states), if any, else with the envs reset; with both the
-    resumed run is bit-identical to an uninterrupted one. A complete run or one of another
-    configuration is refused unless ``overwrite``, which moves the old run aside and removes it once
-    the new run has written its ``eval.json``.
+    resumed run is bit-identical to an uninterrupted one. A run killed after saving ``model.zip``
+    (during its final evaluation) is evaluated from that model, without training. A complete run or
+    one of another configuration is refused unless ``overwrite``, which moves the old run aside
+    (kept, never deleted).
 
     :param save_freq: save a checkpoint every this many agent-steps (``None``: no checkpoints).
     :param log_interval: team episodes between log dumps.
@@ -322,43 +379,44 @@ def train_run(
     tensorboard_log = _tensorboard_dir(folder, verbose)
     model = new_model(config, env, verbose, tensorboard_log, device)
     with RunLock(folder):
-        checkpoint, replaced = prepare_run_folder(folder, config, overwrite)
+        begin = prepare_run_folder(folder, config, overwrite)
+        checkpoint = begin.model_file
         remove_temporary_files(folder)  # of a killed write: the lock says that no other process writes
-        if replaced is not None and verbose:
-            print(f"Moved the old run aside to {replaced} (removed once this run has finished)")
+        if begin.moved_aside is not None and verbose:
+            print(
+                f"Moved the old run aside to {begin.moved_aside} (kept: remove it once you no longer need it)"
+            )
         if checkpoint is not None:
             model = PRESETS[config.preset][0].load(
                 checkpoint, env=env, device=device, tensorboard_log=tensorboard_log, verbose=verbose
             )
-            rewind_team_returns(folder / TEAM_RETURNS_FILE, model._episode_num)
-            replay = _load_replay_buffer(model, checkpoint_companion(checkpoint, "replay_buffer"))
-            exact = _load_training_state(model, checkpoint_companion(checkpoint, "training_state"))
+        if begin.finished:
             if verbose:
-                print(
-                    f"Resuming from {checkpoint} ({model.num_timesteps} agent-steps done, "
-                    f"{'its' if replay else 'an empty'} replay buffer, "
-                    f"{'its env state' if exact else 'the envs reset'})"
-                )
+                print(f"Evaluating the finished model {checkpoint} ({model.num_timesteps} agent-steps)")
+        elif checkpoint is not None:
+            _resume(folder, model, checkpoint, verbose)
         config.extra = _run_figures(config, env, model)
         write_text_atomically(folder / CONFIG_FILE, yaml.safe_dump(config.to_dict(), sort_keys=False))
 
-        remaining = max(0, config.total_timesteps - model.num_timesteps)
-        model.learn(
-            remaining,
-            callback=_callbacks(
-                folder,
-                config,
-                env,
-                save_freq,
-                resumed=checkpoint is not None,
-                save_replay_buffer=save_replay_buffer,
-            ),
-            log_interval=log_interval,
-            progress_bar=progress_bar,
-            reset_num_timesteps=checkpoint is None,
-        )
+        if not begin.finished:
+            remaining = max(0, config.total_timesteps - model.num_timesteps)
+            model.learn(
+                remaining,
+                callback=_callbacks(
+                    folder,
+                    config,
+                    env,
+                    save_freq,
+                    resumed=checkpoint is not None,
+                    save_replay_buffer=save_replay_buffer,
+                ),
+                log_interval=log_interval,
+                progress_bar=progress_bar,
+                reset_num_timesteps=checkpoint is None,
+            )
+            # No model.zip is here to be replaced: a whole one was evaluated, a damaged one set aside.
+            save_model_atomically(model, folder / MODEL_FILE)
         env.close()
-        save_model_atomically(model, folder / MODEL_FILE)
         train_time = time.time() - start
         results = _final_evaluation(config, model)
         n_agents = int(config.extra["n_agents"])
@@ -377,9 +435,21 @@ def train_run(
             completed=True,
         )
         write_json(folder / EVAL_FILE, results)
-        if replaced is not None:
-            shutil.rmtree(replaced, ignore_errors=True)
     return results
+
+
+def _resume(folder: Path, model: GraphOffPolicyAlgorithm, checkpoint: Path, verbose: int) -> None:
+    """Bring the run back to ``checkpoint``, whose model is ``model``: ``team_returns.csv`` rewound to
+    its episodes, its replay buffer and training state loaded where they are whole."""
+    rewind_team_returns(folder / TEAM_RETURNS_FILE, model._episode_num)
+    replay = _load_replay_buffer(model, checkpoint_companion(checkpoint, "replay_buffer"))
+    exact = _load_training_state(model, checkpoint_companion(checkpoint, "training_state"))
+    if verbose:
+        print(
+            f"Resuming from {checkpoint} ({model.num_timesteps} agent-steps done, "
+            f"{'its' if replay else 'an empty'} replay buffer, "
+            f"{'its env state' if exact else 'the envs reset'})"
+        )
 
 
 def _load_replay_buffer(model: GraphOffPolicyAlgorithm, path: Path) -> bool:
@@ -421,7 +491,7 @@ def _callbacks(
 ) -> list[BaseCallback]:
     """The training callbacks of a run: ``team_returns.csv`` (continued when ``resumed``) and, with
     ``save_freq``, atomic checkpoints every ``save_freq`` agent-steps (with the replay buffer when
-    ``save_replay_buffer``)."""
+    ``save_replay_buffer``), the newest ``config.keep_checkpoints`` of them kept."""
     callbacks: list[BaseCallback] = [
         TeamMonitorCallback(str(folder / TEAM_RETURNS_FILE), env_id=config.env, append=resumed)
     ]
@@ -432,6 +502,7 @@ def _callbacks(
                 str(folder / CHECKPOINT_DIR),
                 name_prefix="model",
                 save_replay_buffer=save_replay_buffer,
+                keep=config.keep_checkpoints,
             )
         )
     return callbacks
@@ -499,7 +570,7 @@ def _run_figures(config: RunConfig, env: GraphVecEnv, model: GraphOffPolicyAlgor
         "algorithm_kwargs": _plain(merge(kwargs, config.hyperparams)),
         "n_agents": int(env.n_agents),
         "num_envs": int(env.num_envs),
-        "n_parameters": int(sum(p.numel() for p in model.policy.parameters())),
+        "n_parameters": trained_parameter_count(model),
         "package_version": sb3_hgrn.__version__,
         "stable_baselines3_version": str(stable_baselines3.__version__),
         "torch_version": str(torch.__version__),
@@ -507,6 +578,19 @@ def _run_figures(config: RunConfig, env: GraphVecEnv, model: GraphOffPolicyAlgor
         "python": sys.version.split()[0],
         "command": " ".join(sys.argv),
     }
+
+
+def trained_parameter_count(model: GraphOffPolicyAlgorithm) -> int:
+    """The weights ``model``'s network optimisers train (the online Q-network, or the actor and the
+    critics), each counted once; the target and averaged copies and the temperature are left out."""
+    optimizers = [operator.attrgetter(name)(model) for name in model._optimizer_names()]
+    params = {
+        id(param): param
+        for optimizer in optimizers
+        for group in optimizer.param_groups
+        for param in group["params"]
+    }
+    return int(sum(param.numel() for param in params.values()))
 
 
 def _plain(value: Any) -> Any:

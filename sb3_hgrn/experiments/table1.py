@@ -13,6 +13,7 @@ sweep ends they get the robust statistics too (:mod:`sb3_hgrn.experiments.table1
 from __future__ import annotations
 
 import os
+import re
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -117,8 +118,11 @@ def train_args(
 
 
 def check_budget_of_folder(root: Path, budget: str) -> None:
-    """Refuse to mix budgets: complete runs under ``root`` must all be of ``budget``."""
+    """Refuse to mix budgets: complete runs under ``root`` must all be of ``budget`` (runs that
+    ``--overwrite`` moved aside, ``seed_<n>.replaced-<time>/``, are not runs of the sweep)."""
     for path in root.glob("*/*/seed_*/eval.json"):
+        if not re.fullmatch(r"seed_\d+", path.parent.name):
+            continue
         done = read_eval(path.parent)
         if done is not None and done.get("budget") != budget:
             raise ConfigError(
