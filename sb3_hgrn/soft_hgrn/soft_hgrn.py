@@ -137,6 +137,12 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
         if _init_setup_model:
             self._setup_model()
 
+    def _sync_policy_kwargs(self) -> None:
+        """``average_tau`` as the policy has it now: ``None`` once ``policy.drop_average()`` dropped
+        the averaged Q-network, so that the saved model is built without one."""
+        if self.policy_kwargs.get("average_tau") != self.policy.average_tau:
+            self.policy_kwargs = {**self.policy_kwargs, "average_tau": self.policy.average_tau}
+
     def _next_value(self, next_q: th.Tensor, alpha: th.Tensor) -> th.Tensor:
         """State value ``(batch, n_agents)`` of the next observations from target Q-values
         ``(batch, n_agents, n_actions)``: the soft value, or the hard max for ``stochastic=False``."""
