@@ -25,7 +25,13 @@ from sb3_hgrn import SACHGRN, SoftHGRN, make_graph_vec_env
 from sb3_hgrn.cli import main
 from sb3_hgrn.common.controllers import ModelController
 from sb3_hgrn.common.files import DamagedModelFileError, ModelFileError
-from sb3_hgrn.common.safe_load import RECORD_MEMBER, UntrustedPickleError, from_plain, to_plain
+from sb3_hgrn.common.safe_load import (
+    RECORD_MEMBER,
+    UntrustedPickleError,
+    from_plain,
+    restricted_loads,
+    to_plain,
+)
 from sb3_hgrn.experiments.runs import _load_training_state, evaluate_run
 from tests.toy_envs import NeighborBitEnv, SignalReaderEnv
 
@@ -145,6 +151,16 @@ def test_a_record_that_names_another_class_is_refused(tmp_path):
     rewrite_zip(path, {RECORD_MEMBER: json.dumps(record).encode()})
     with pytest.raises(UntrustedPickleError, match="subprocess.Popen"):
         SoftHGRN.load(path)
+
+
+def test_the_restricted_unpickler_never_changes_a_class():
+    """A pickle that sets an attribute on an allowed class (a BUILD on the class itself)."""
+    build_on_class = (
+        b"\x80\x02cstable_baselines3.common.utils\nLinearSchedule\nN}X\x06\x00\x00\x00markerK\x01s\x86b."
+    )
+    with pytest.raises(UntrustedPickleError, match="sets attributes of the class LinearSchedule"):
+        restricted_loads(build_on_class, "the file x")
+    assert not hasattr(LinearSchedule, "marker")
 
 
 @pytest.mark.parametrize(

@@ -102,8 +102,12 @@ class UntrustedPickleError(ModelFileError):
     """A file that can only be loaded by unpickling something that could run code."""
 
 
-class _RestrictedUnpickler(pickle.Unpickler):
-    """Unpickler that resolves only :data:`ALLOWED_GLOBALS` and the given classes."""
+class _RestrictedUnpickler(pickle._Unpickler):
+    """Unpickler that resolves only :data:`ALLOWED_GLOBALS` and the given classes, and sets state
+    only on objects, never on a class (which would change it for the whole process).
+
+    It is pickle's pure-Python unpickler, whose opcodes can be overridden (the C one's cannot).
+    """
 
     def __init__(self, file: io.BytesIO, source: str, classes: Iterable[type]):
         super().__init__(file)
@@ -117,6 +121,14 @@ class _RestrictedUnpickler(pickle.Unpickler):
                 f"{self.source} refers to {module}.{name}, which sb3_hgrn does not build from a file."
             )
         return found
+
+    def load_build(self) -> None:
+        target = self.stack[-2]
+        if isinstance(target, type):
+            raise UntrustedPickleError(f"{self.source} sets attributes of the class {target.__qualname__}.")
+        super().load_build()
+
+    dispatch = {**pickle._Unpickler.dispatch, pickle.BUILD[0]: load_build}
 
 
 def restricted_loads(data: bytes, source: str, classes: Iterable[type] = ()) -> Any:
