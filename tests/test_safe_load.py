@@ -23,6 +23,7 @@ from stable_baselines3.common.utils import LinearSchedule
 
 from sb3_hgrn import SACHGRN, SoftHGRN, make_graph_vec_env
 from sb3_hgrn.cli import main
+from sb3_hgrn.common import safe_load
 from sb3_hgrn.common.controllers import ModelController
 from sb3_hgrn.common.files import DamagedModelFileError, ModelFileError
 from sb3_hgrn.common.safe_load import (
@@ -85,14 +86,20 @@ def set_data_entry(path: Path, key: str, value: object, drop_record: bool = Fals
     rewrite_zip(path, {"data": json.dumps(data).encode(), **({RECORD_MEMBER: None} if drop_record else {})})
 
 
+def refuse(*args, **kwargs):
+    raise AssertionError("a model entry was unpickled")
+
+
 @pytest.fixture
-def no_unpickling(monkeypatch):
+def no_full_unpickling(monkeypatch):
     """Make SB3's unpickling of zip entries fail the test."""
-
-    def refuse(*args, **kwargs):
-        raise AssertionError("a model entry was unpickled")
-
     monkeypatch.setattr(save_util.cloudpickle, "loads", refuse)
+
+
+@pytest.fixture
+def no_unpickling(monkeypatch, no_full_unpickling):
+    """Make any unpickling of zip entries fail the test, the restricted one too."""
+    monkeypatch.setattr(safe_load, "restricted_loads", refuse)
 
 
 def assert_same_model(loaded, model, env) -> None:
@@ -193,7 +200,7 @@ def test_save_load_round_trip_unpickles_nothing(tmp_path, no_unpickling, algorit
     assert algorithm.load(path, env=env_fn(), force_reset=False).num_timesteps == model.num_timesteps
 
 
-def test_zips_saved_without_the_record_load_with_the_restricted_unpickler(tmp_path, no_unpickling):
+def test_zips_saved_without_the_record_load_with_the_restricted_unpickler(tmp_path, no_full_unpickling):
     """As saved by the previous version: every pickled entry is one of the allowed types."""
     env = group_env()
     model = small_model(SoftHGRN, env, learning_rate=LinearSchedule(1e-3, 1e-4, 0.5), stochastic=False)

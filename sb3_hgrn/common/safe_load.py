@@ -334,30 +334,38 @@ def saved_entries(source: ZipSource, name: str, classes: Iterable[type], skip: I
     :param name: the file's name for error messages.
     :param classes: the classes the entries may refer to (policy classes, optimisers).
     :param skip: entries not to rebuild (the caller gives them).
-    :raises UntrustedPickleError: naming the file and the entry that cannot be rebuilt.
+    :raises UntrustedPickleError: naming the file and every entry that cannot be rebuilt.
     """
     classes = tuple(classes)
     with open_model_zip(source) as archive:
         data = json.loads(archive.read("data"))
         has_record = RECORD_MEMBER in archive.namelist()
         record = json.loads(archive.read(RECORD_MEMBER))["entries"] if has_record else {}
-    entries = {}
-    for key in set(_pickled_keys(data)) - set(skip):
+    entries, refused = {}, {}
+    for key in [key for key in _pickled_keys(data) if key not in set(skip)]:
         try:
-            if key in record:
-                entries[key] = from_plain(record[key], classes)
-            else:
-                entries[key] = restricted_loads(
-                    base64.b64decode(data[key][":serialized:"]), f"the entry {key!r}", classes
-                )
+            entries[key] = _saved_entry(key, data[key], record, classes)
         except UntrustedPickleError as error:
-            raise UntrustedPickleError(
-                f"{name}: {error} The model cannot be loaded without running code from the file. "
-                f"{TRUST_HINT}."
-            ) from error
+            refused[key] = error
         except (pickle.UnpicklingError, EOFError, ValueError, KeyError, TypeError) as error:
             raise DamagedModelFileError(f"damaged model file {name}: entry {key!r}: {error}") from error
+    if refused:
+        reasons = " ".join(str(error) for error in refused.values())
+        raise UntrustedPickleError(
+            f"{name}: the entries {', '.join(map(repr, refused))} cannot be loaded without running code "
+            f"from the file: {reasons} {TRUST_HINT}."
+        )
     return entries
+
+
+def _saved_entry(
+    key: str, serialized: dict[str, Any], record: dict[str, Any], classes: tuple[type, ...]
+) -> Any:
+    """The entry ``key`` of a model zip's ``data``: from its plain form in ``record`` if there is one,
+    else from its pickle ``serialized`` by :func:`restricted_loads`."""
+    if key in record:
+        return from_plain(record[key], classes)
+    return restricted_loads(base64.b64decode(serialized[":serialized:"]), f"the entry {key!r}", classes)
 
 
 def read_saved_pickle(
