@@ -371,8 +371,8 @@ def _saved_entry(
 def read_saved_pickle(
     path: str | os.PathLike | io.BufferedIOBase,
     what: str,
-    suffix: str,
-    trust_pickle: bool,
+    suffix: str = ".pkl",
+    trust_pickle: bool = False,
     classes: Iterable[type] = (),
 ) -> Any:
     """The object pickled in the file ``path`` (``<path><suffix>`` if ``path`` is not a file, as SB3

@@ -417,7 +417,7 @@ def _load_training_state(model: GraphOffPolicyAlgorithm, path: Path, trust_pickl
     if not path.is_file():
         return False
     try:
-        state = read_saved_pickle(path, "training state", ".pkl", trust_pickle)
+        state = read_saved_pickle(path, "training state", trust_pickle=trust_pickle)
         model.set_training_state(state, trust_pickle)
     except (pickle.UnpicklingError, EOFError, AttributeError, KeyError, TypeError, ValueError) as error:
         warnings.warn(f"Skipping the training state {path}, which cannot be loaded: {error}", stacklevel=2)
