@@ -22,6 +22,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from sb3_hgrn.common.files import ModelFileError
 from sb3_hgrn.common.vec_env import REGISTERED_ENVS
 from sb3_hgrn.experiments.backends import BACKENDS, Backend, make_backend
 from sb3_hgrn.experiments.config import BUDGETS, ENV_SPEC_HELP, ConfigError, parse_assignments
@@ -67,9 +68,20 @@ def _add_trust_config(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--trust-config",
         action="store_true",
-        help="import the env MODULE:ATTR that the run's config.yml names without --env naming it too, and "
-        "load models it names for its env (Pursuit controllers) from anywhere, not only from inside "
-        "the run folder (importing a module or loading a model can run code)",
+        help="trust the run folder: import the env MODULE:ATTR that its config.yml names without --env "
+        "naming it too, load models it names for its env (Pursuit controllers) from anywhere, not only "
+        "from inside the run folder, and unpickle its model zip in full if it needs it (--trust-pickle); "
+        "importing a module or unpickling a file can run code",
+    )
+    _add_trust_pickle(parser)
+
+
+def _add_trust_pickle(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--trust-pickle",
+        action="store_true",
+        help="load a model zip that only full unpickling can load (one saved with a learning-rate "
+        "function or a class of one's own, or not by sb3_hgrn's save); unpickling can run code",
     )
 
 
@@ -150,6 +162,12 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--threads", type=_positive_int, help="torch CPU threads")
     train.add_argument("--device", default="auto", help="torch device (default auto)")
     train.add_argument("--overwrite", action="store_true", help="redo a run whose folder holds eval.json")
+    train.add_argument(
+        "--trust-config",
+        action="store_true",
+        help="resuming a killed run, unpickle its checkpoint, replay buffer and training state in full "
+        "where they need it (unpickling can run code; without it, such files are refused or skipped)",
+    )
 
     evaluate = commands.add_parser("evaluate", help="team return of a saved run")
     evaluate.add_argument("path", help="run folder, its model.zip or a checkpoint")
@@ -400,6 +418,7 @@ def _train(args: argparse.Namespace) -> int:
         log_interval=args.log_interval,
         overwrite=args.overwrite,
         save_replay_buffer=args.save_replay_buffer,
+        trust_config=args.trust_config,
     )
     print(
         f"{config.preset} on {config.env} (budget {config.budget}, seed {config.seed}): team return "
@@ -424,6 +443,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         n_envs=args.n_envs,
         seed=args.seed,
         trust_config=args.trust_config,
+        trust_pickle=args.trust_pickle,
         online=args.online,
         **parse_assignments(args.env_param, "--env-param"),
     )
@@ -454,6 +474,7 @@ def _render(args: argparse.Namespace) -> int:
         env=args.env,
         seed=args.seed,
         trust_config=args.trust_config,
+        trust_pickle=args.trust_pickle,
         **parse_assignments(args.env_param, "--env-param"),
     )
     print(f"wrote {args.out} ({n_frames} frames rendered)")
@@ -588,14 +609,14 @@ COMMANDS = {
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line ``argv`` (default ``sys.argv[1:]``); returns the exit status.
 
-    Bad input (unknown env, preset or budget, a malformed ``--param``) exits with status 2 and a
-    message naming the problem, as argparse does for its own errors.
+    Bad input (unknown env, preset or budget, a malformed ``--param``, a model file it will not load)
+    exits with status 2 and a message naming the problem, as argparse does for its own errors.
     """
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         return COMMANDS[args.command](args)
-    except ConfigError as error:
+    except (ConfigError, ModelFileError) as error:
         parser.error(str(error))
     return 2  # not reached: parser.error exits
 

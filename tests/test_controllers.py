@@ -1,6 +1,7 @@
 """ModelController: the learner-side wrapper that loads a model to drive one side of an env and seeds
 its sampling from the env."""
 
+import io
 import json
 import zipfile
 
@@ -51,12 +52,16 @@ def test_bind_refuses_a_model_of_other_observations():
 def test_what_is_no_model_is_refused(tmp_path):
     with pytest.raises(TypeError, match="a model with predict\\(\\) or a saved model's path, got int"):
         ModelController(3)
-    with pytest.raises(ValueError, match="No saved model at .*missing'"):
+    with pytest.raises(ValueError, match=r"No saved model at .*missing \(nor .*missing.zip\)"):
         ModelController(tmp_path / "missing")
+    weights = io.BytesIO()
+    th.save({}, weights)
     with zipfile.ZipFile(tmp_path / "dqn.zip", "w") as archive:
         archive.writestr(
             "data", json.dumps({"policy_class": {"__module__": "stable_baselines3.dqn.policies"}})
         )
-        archive.writestr("policy.pth", b"")
-    with pytest.raises(ValueError, match="Cannot tell which algorithm saved .*dqn.zip"):
+        archive.writestr("policy.pth", weights.getvalue())
+    with pytest.raises(
+        ValueError, match="dqn.zip is not an sb3_hgrn model: it was saved by stable_baselines3's DQN"
+    ):
         load_controller(tmp_path / "dqn")

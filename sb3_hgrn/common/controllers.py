@@ -20,37 +20,40 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 
-from sb3_hgrn.common.files import model_file_path, saved_policy_module
+from sb3_hgrn.common.files import ModelFileError, check_model_file, describe_saved_model, saved_policy_module
 from sb3_hgrn.common.policies import GraphPolicy
 
 MODEL_CLASSES = {"sb3_hgrn.soft_hgrn": "SoftHGRN", "sb3_hgrn.sac_hgrn": "SACHGRN"}
 """sb3_hgrn algorithms by the package of the policy class recorded in a saved zip."""
 
 
-def load_controller(path: str | os.PathLike, model_class: type | None = None) -> Any:
-    """Load a saved sb3_hgrn model on the CPU.
+def load_controller(
+    path: str | os.PathLike, model_class: type | None = None, trust_pickle: bool = False
+) -> Any:
+    """Load a saved sb3_hgrn model on the CPU, without running code from the file unless
+    ``trust_pickle`` (see ``GraphOffPolicyAlgorithm.load``).
 
     :param path: the ``.zip`` written by ``model.save`` (the suffix may be left out, as in SB3).
     :param model_class: class whose ``load`` reads it; ``None`` picks ``SoftHGRN`` or ``SACHGRN``
         from the policy class recorded in the zip.
-    :raises ValueError: when there is no file at ``path`` (nor at ``path.zip``), or ``model_class``
-        is ``None`` and the zip was not saved by an sb3_hgrn algorithm.
+    :raises ValueError: when there is no file at ``path`` (nor at ``path.zip``), the file is damaged,
+        needs ``trust_pickle`` or was not saved by an sb3_hgrn algorithm; the message names the file.
     """
-    file = model_file_path(path)
-    if not file.is_file():
-        raise ValueError(f"No saved model at {os.fspath(path)!r}: neither it nor its .zip is a file.")
+    try:
+        file = check_model_file(path)
+    except FileNotFoundError as error:
+        raise ValueError(str(error)) from error
     if model_class is None:
         policy_module = saved_policy_module(file)
         package = policy_module.rpartition(".")[0]
         if package not in MODEL_CLASSES:
-            raise ValueError(
-                f"Cannot tell which algorithm saved {file} (policy module {policy_module!r}); "
-                "pass model_class."
+            raise ModelFileError(
+                f"{file} is not an sb3_hgrn model: it was saved by {describe_saved_model(file)}."
             )
         import sb3_hgrn
 
         model_class = getattr(sb3_hgrn, MODEL_CLASSES[package])
-    return model_class.load(file, device="cpu")
+    return model_class.load(file, device="cpu", trust_pickle=trust_pickle)
 
 
 class ModelController:
@@ -62,11 +65,13 @@ class ModelController:
     :param model: a model with SB3's ``predict`` (e.g. a ``SoftHGRN``), or the path of a saved
         sb3_hgrn model, loaded with :func:`load_controller`.
     :param model_class: the class that loads a path (``None``: read from the zip).
+    :param trust_pickle: load a path that needs full unpickling (which can run code); see
+        :func:`load_controller`.
     """
 
-    def __init__(self, model: Any, model_class: type | None = None) -> None:
+    def __init__(self, model: Any, model_class: type | None = None, trust_pickle: bool = False) -> None:
         if isinstance(model, str | os.PathLike):
-            model = load_controller(model, model_class)
+            model = load_controller(model, model_class, trust_pickle)
         elif not callable(getattr(model, "predict", None)):
             raise TypeError(
                 f"ModelController takes a model with predict() or a saved model's path, got "
@@ -140,7 +145,9 @@ def resolve_model_paths(env_fn: Callable[..., Any], env_kwargs: dict[str, Any]) 
     Which arguments name saved models the module defining ``env_fn`` says with
     ``model_paths(env_kwargs) -> {argument: path}`` (as :mod:`sb3_hgrn.envs.pursuit_v0` does, and a
     module of one's own can with :func:`sb3_hgrn.envs.controllers.controller_paths`); for other envs
-    ``env_kwargs`` is returned as it is. Loading a model unpickles it, so it can run code.
+    ``env_kwargs`` is returned as it is. The models are loaded without running code from their files
+    (a file that needs full unpickling is refused; pass a ``ModelController(path, trust_pickle=True)``
+    in ``env_kwargs`` instead of its path to load one you trust).
 
     :raises ValueError: naming the argument whose path holds no saved model.
     """

@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import errno
+import io
 import json
 import os
 import re
@@ -28,8 +29,13 @@ TEMPORARY_SUFFIX = ".tmp"
 """End of the temporary files of :func:`atomic_write` (``.<name>.<pid>.tmp`` beside the target)."""
 
 
-class DamagedModelFileError(ValueError):
-    """A model zip that cannot be loaded: cut short, not a zip, or with unreadable contents."""
+class ModelFileError(ValueError):
+    """A saved file (model zip, replay buffer, training state) that sb3_hgrn will not load; the message
+    names the file and says why."""
+
+
+class DamagedModelFileError(ModelFileError):
+    """A saved file that cannot be loaded: cut short, not a zip, or with unreadable contents."""
 
 
 @contextlib.contextmanager
@@ -112,37 +118,108 @@ def save_model_atomically(model: Any, path: str | os.PathLike) -> None:
     save_atomically(model.save, path)
 
 
-def model_file_path(path: str | os.PathLike) -> Path:
-    """The file SB3's ``load`` reads for ``path``: ``path`` itself, else ``<path>.zip``."""
+def model_file_path(path: str | os.PathLike, suffix: str = ".zip") -> Path:
+    """The file SB3's ``load`` reads for ``path``: ``path`` itself, else ``<path><suffix>`` (SB3 adds
+    ``.zip`` to model paths, ``.pkl`` to replay-buffer paths)."""
     path = Path(path)
-    return path if path.exists() else Path(f"{path}.zip")
+    return path if path.exists() else Path(f"{path}{suffix}")
 
 
-def check_model_file(path: str | os.PathLike) -> None:
+def existing_saved_file(path: str | os.PathLike, what: str = "model", suffix: str = ".zip") -> Path:
+    """:func:`model_file_path` of ``path``, or a ``FileNotFoundError`` naming ``path`` as given
+    (``No saved <what> at ...``) when neither it nor ``<path><suffix>`` is a file."""
+    file = model_file_path(path, suffix)
+    if not file.is_file():
+        tried = "" if str(path).endswith(suffix) else f" (nor {os.fspath(path)}{suffix})"
+        raise FileNotFoundError(f"No saved {what} at {os.fspath(path)}{tried}.")
+    return file
+
+
+def _check_torch_member(archive: zipfile.ZipFile, name: str, path: Path) -> None:
+    """Raise :class:`DamagedModelFileError` naming ``path`` and the member unless the member ``name``
+    (a ``torch.save`` file, itself a zip archive) is whole."""
+    try:
+        with zipfile.ZipFile(io.BytesIO(archive.read(name))) as inner:
+            broken = inner.testzip()
+    except (zipfile.BadZipFile, zlib.error, EOFError) as error:
+        raise DamagedModelFileError(
+            f"damaged model file {path}: member {name!r} is not a whole torch file ({error})"
+        ) from error
+    if broken is not None:
+        raise DamagedModelFileError(
+            f"damaged model file {path}: member {name!r}: {broken!r} fails its checksum"
+        )
+
+
+def check_model_file(path: str | os.PathLike) -> Path:
     """Raise :class:`DamagedModelFileError` naming ``path`` unless it is a whole SB3 model zip (a
-    readable zip with intact members, among them ``data`` as JSON and ``policy.pth``).
+    readable zip with intact members, among them ``data`` as JSON and ``policy.pth``, and every
+    ``.pth`` member a whole torch file).
 
-    A missing file is left to the loader (its own ``FileNotFoundError``).
+    :return: the file (``path``, or ``<path>.zip`` as SB3 reads it).
+    :raises FileNotFoundError: naming ``path`` when there is no file at it (nor at ``<path>.zip``).
     """
-    path = model_file_path(path)
-    if not path.is_file():
-        return
+    path = existing_saved_file(path)
     try:
         with zipfile.ZipFile(path) as archive:
             broken = archive.testzip()
             missing = [name for name in MODEL_MEMBERS if name not in archive.namelist()]
             if broken is None and not missing:
                 json.loads(archive.read("data"))
+                for name in archive.namelist():
+                    if name.endswith(".pth"):
+                        _check_torch_member(archive, name, path)
+    except DamagedModelFileError:
+        raise
     except (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError) as error:
         raise DamagedModelFileError(f"damaged model file {path}: {error}") from error
     if broken is not None:
         raise DamagedModelFileError(f"damaged model file {path}: member {broken!r} fails its checksum")
     if missing:
         raise DamagedModelFileError(f"damaged model file {path}: no {', '.join(missing)} in the zip")
+    return path
 
 
-def saved_policy_module(path: str | os.PathLike) -> str:
+ZipSource = str | os.PathLike | io.BytesIO
+"""A model zip: its path (the ``.zip`` may be left out, as in SB3) or its bytes in memory."""
+
+
+def open_model_zip(source: ZipSource) -> zipfile.ZipFile:
+    """The model zip ``source`` opened for reading."""
+    return zipfile.ZipFile(source if isinstance(source, io.BytesIO) else model_file_path(source))
+
+
+def saved_data(source: ZipSource) -> dict[str, Any]:
+    """The ``data`` JSON of a whole SB3 model zip, as written (pickled entries left as they are)."""
+    with open_model_zip(source) as archive:
+        return json.loads(archive.read("data"))
+
+
+def saved_policy_class(source: ZipSource) -> tuple[str, str]:
+    """Module and name of the policy class recorded in a whole SB3 model zip (``""`` for what is not
+    recorded; SB3 keeps the name only inside the recorded methods, ``<function NAME.method ...>``)."""
+    policy_class = saved_data(source).get("policy_class")
+    if not isinstance(policy_class, dict):
+        return "", ""
+    methods = (re.match(r"<function (\w+)\.", str(value)) for value in policy_class.values())
+    names = [match.group(1) for match in methods if match]
+    return str(policy_class.get("__module__", "")), names[0] if names else ""
+
+
+def saved_policy_module(source: ZipSource) -> str:
     """The module of the policy class recorded in a whole SB3 model zip (``""`` if none is)."""
-    with zipfile.ZipFile(model_file_path(path)) as archive:
-        policy_class = json.loads(archive.read("data")).get("policy_class")
-    return policy_class.get("__module__", "") if isinstance(policy_class, dict) else ""
+    return saved_policy_class(source)[0]
+
+
+def describe_saved_model(source: ZipSource) -> str:
+    """What saved a model zip, in words, from its policy class: ``"stable_baselines3's DQN (policy
+    DQNPolicy)"`` for ``stable_baselines3.dqn.policies``; the class's module for other libraries."""
+    module, name = saved_policy_class(source)
+    package, _, rest = module.partition(".")
+    algorithm = rest.split(".")[0]
+    policy = f" (policy {name})" if name else ""
+    if not module:
+        return "an unknown library (no policy class recorded)"
+    if algorithm and algorithm != "common":
+        return f"{package}'s {algorithm.upper()}{policy}"
+    return f"{package}{policy}, policy module {module}"

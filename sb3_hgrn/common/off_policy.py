@@ -9,6 +9,7 @@ import random
 import sys
 import time
 from collections import deque
+from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
@@ -16,7 +17,6 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
-from stable_baselines3.common.save_util import load_from_pkl
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, RolloutReturn, Schedule, TrainFreq
 from stable_baselines3.common.utils import (
     LinearSchedule,
@@ -28,9 +28,17 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_hgrn.common.buffers import GraphReplayBuffer, GraphSamples
 from sb3_hgrn.common.checks import check_rewards
-from sb3_hgrn.common.files import check_model_file, saved_policy_module
+from sb3_hgrn.common.files import (
+    ModelFileError,
+    ZipSource,
+    check_model_file,
+    describe_saved_model,
+    saved_data,
+    saved_policy_module,
+)
 from sb3_hgrn.common.hgrn import HGRN
 from sb3_hgrn.common.policies import GraphPolicy, check_graph_spaces
+from sb3_hgrn.common.safe_load import add_plain_record, read_saved_pickle, saved_entries, write_zip
 from sb3_hgrn.common.temperature import TemperatureController, group_means, target_entropy
 from sb3_hgrn.common.vec_env import make_graph_vec_env
 
@@ -40,6 +48,10 @@ TRAINING_STATE_KEYS = frozenset(
 )
 """The entries every :meth:`GraphOffPolicyAlgorithm.get_training_state` holds (its ``last_alive``,
 the agents alive in the last observation, may be missing from older states: all were alive then)."""
+
+
+GRAPH_MODEL_KEYS = frozenset({"target_entropy_ratio", "hidden_dtype", "n_agents"})
+"""Entries of the ``data`` of every zip a :class:`GraphOffPolicyAlgorithm` saves."""
 
 
 def check_graph_env(env: Any) -> VecEnv:
@@ -411,43 +423,99 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
     def _wrap_env(env: GymEnv, verbose: int = 0, monitor_wrapper: bool = True) -> VecEnv:
         return check_graph_env(env)
 
+    def save(
+        self,
+        path: str | pathlib.Path | io.BufferedIOBase,
+        exclude: Iterable[str] | None = None,
+        include: Iterable[str] | None = None,
+    ) -> None:
+        """SB3's ``save``, with the plain-data record of what SB3 pickles (see
+        :mod:`sb3_hgrn.common.safe_load`), so that :meth:`load` rebuilds the model without unpickling."""
+        self._sync_policy_kwargs()
+        archive = io.BytesIO()
+        super().save(archive, exclude, include)
+        add_plain_record(archive, self.__dict__)
+        write_zip(path, archive.getvalue())
+
+    def _sync_policy_kwargs(self) -> None:
+        """Make ``policy_kwargs`` describe the policy as it is now, so that a loaded model builds the
+        same one: ``average_tau`` is ``None`` once ``policy.drop_average()`` dropped the average."""
+        if self.policy_kwargs.get("average_tau") != self.policy.average_tau:
+            self.policy_kwargs = {**self.policy_kwargs, "average_tau": self.policy.average_tau}
+
     @classmethod
     def load(
         cls,
-        path: str | os.PathLike | Any,
+        path: str | os.PathLike | io.BufferedIOBase,
         env: GymEnv | None = None,
         device: th.device | str = "auto",
         custom_objects: dict[str, Any] | None = None,
         print_system_info: bool = False,
         force_reset: bool = True,
+        trust_pickle: bool = False,
         **kwargs: Any,
     ):
-        """SB3's ``load``; a damaged zip (cut short, not a zip, unreadable contents) raises
-        :class:`~sb3_hgrn.common.files.DamagedModelFileError`, a ``ValueError`` naming the file.
+        """SB3's ``load``, without running code from the file unless ``trust_pickle``.
 
-        Like any SB3 zip, a model file can run code when loaded: load only files from a trusted source.
+        The settings SB3 pickles are rebuilt from plain data (:mod:`sb3_hgrn.common.safe_load`) and
+        the weights read with ``torch.load(weights_only=True)``. A zip with an entry that only full
+        unpickling can rebuild (a learning-rate function, a policy class of one's own) raises
+        :class:`~sb3_hgrn.common.safe_load.UntrustedPickleError` naming it; ``trust_pickle=True``
+        unpickles it as SB3 does, which can run any code: pass it only for files you trust.
+
+        :raises FileNotFoundError: naming ``path`` when neither it nor ``<path>.zip`` is a file.
+        :raises ~sb3_hgrn.common.files.DamagedModelFileError: for a damaged zip (cut short, not a
+            zip, unreadable contents), naming the file.
+        :raises ~sb3_hgrn.common.files.ModelFileError: for a zip of another library's algorithm.
+        :raises ValueError: for a zip of another sb3_hgrn algorithm, naming the class to load it with.
         """
         if isinstance(path, str | os.PathLike):
-            check_model_file(path)
-            cls._check_saved_algorithm(path)
-        return super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
+            source, name = check_model_file(path), os.fspath(path)
+        else:
+            source, name = io.BytesIO(path.read()), "the model file"
+        cls._check_saved_algorithm(source, name)
+        if not trust_pickle:
+            given = custom_objects or {}
+            custom_objects = {**saved_entries(source, name, cls._loadable_classes(), skip=given), **given}
+        return super().load(source, env, device, custom_objects, print_system_info, force_reset, **kwargs)
 
     @classmethod
-    def _check_saved_algorithm(cls, path: str | os.PathLike) -> None:
-        """Raise a ``ValueError`` saying which class to load with when ``path`` holds a model of
-        another graph algorithm (known by its policy's module; an unknown policy is left to SB3)."""
-        module = saved_policy_module(path)
+    def _loadable_classes(cls) -> list[type]:
+        """The classes a model file may name when it is loaded without trust: the algorithm's policy
+        classes and torch's optimisers."""
+        optimizers = [
+            value
+            for value in vars(th.optim).values()
+            if isinstance(value, type) and issubclass(value, th.optim.Optimizer)
+        ]
+        return [*cls.policy_aliases.values(), *optimizers]
+
+    @classmethod
+    def _check_saved_algorithm(cls, source: ZipSource, name: str) -> None:
+        """Raise an error saying what saved ``source`` unless it holds a model of this algorithm (known
+        by its policy's module): a ``ValueError`` naming the class to load it with for another graph
+        algorithm, a :class:`~sb3_hgrn.common.files.ModelFileError` for another library's model."""
+        module = saved_policy_module(source)
         if module in _policy_modules(cls):
             return
         for other in _graph_algorithms():
             if module in _policy_modules(other):
                 raise ValueError(
-                    f"{path} holds a {other.__name__} model, not a {cls.__name__} one: load it with "
+                    f"{name} holds a {other.__name__} model, not a {cls.__name__} one: load it with "
                     f"{other.__name__}.load."
                 )
+        if GRAPH_MODEL_KEYS <= set(saved_data(source)):  # a graph model with a policy class of its own
+            return
+        raise ModelFileError(
+            f"{name} is not an sb3_hgrn model: it was saved by {describe_saved_model(source)}. Load it "
+            "with that algorithm's own class."
+        )
 
     def load_replay_buffer(
-        self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True
+        self,
+        path: str | pathlib.Path | io.BufferedIOBase,
+        truncate_last_traj: bool = True,
+        trust_pickle: bool = False,
     ) -> None:
         """Load a :class:`GraphReplayBuffer` written by ``save_replay_buffer`` (also by another
         instance of this model, e.g. before a ``load``).
@@ -456,8 +524,17 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         ``n_agents``-agent copies) with its observation shape and recurrent-state width; anything
         else raises a ``ValueError`` saying what differs. ``truncate_last_traj`` is SB3's
         ``HerReplayBuffer`` option and has no effect here.
+
+        The file (a pickle) is read by :func:`~sb3_hgrn.common.safe_load.restricted_loads`, which
+        builds only a buffer's own types; ``trust_pickle=True`` unpickles it in full (it can then
+        run code: only for files you trust).
+
+        :raises FileNotFoundError: naming ``path`` when neither it nor ``<path>.pkl`` is a file.
+        :raises ~sb3_hgrn.common.files.DamagedModelFileError: for a file cut short or not a pickle.
+        :raises ~sb3_hgrn.common.safe_load.UntrustedPickleError: for a file that refers to other
+            types (another library's buffer), naming the first one.
         """
-        buffer = load_from_pkl(path, self.verbose)
+        buffer = read_saved_pickle(path, "replay buffer", ".pkl", trust_pickle, [GraphReplayBuffer])
         if not isinstance(buffer, GraphReplayBuffer):
             raise TypeError(f"{path} holds a {type(buffer).__name__}, not a GraphReplayBuffer.")
         layout = {
@@ -506,9 +583,12 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
             "python_rng": random.getstate(),
         }
 
-    def set_training_state(self, state: dict[str, Any]) -> None:
+    def set_training_state(self, state: dict[str, Any], trust_pickle: bool = False) -> None:
         """Restore a :meth:`get_training_state` into this model (loaded from the zip saved with it),
         so that ``learn(..., reset_num_timesteps=False)`` goes on as the saved run would have.
+
+        The env's state is unpickled as :meth:`GraphVecEnv.set_state
+        <sb3_hgrn.common.vec_env.GraphVecEnv.set_state>` does it, in full only with ``trust_pickle``.
 
         A state that lacks an entry or was taken at another step than the model's ``num_timesteps``
         raises a ``ValueError``, one of another env layout too (before anything has changed).
@@ -521,7 +601,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
                 f"The training state was taken at agent-step {state['num_timesteps']}, the model is at "
                 f"{self.num_timesteps}."
             )
-        self.env.set_state(state["env"])  # checks the layout before it changes anything
+        self.env.set_state(state["env"], trust_pickle)  # checks the layout before it changes anything
         self._last_obs = state["last_obs"]
         self._last_episode_starts = state["last_episode_starts"]
         self._last_hidden = state["last_hidden"]

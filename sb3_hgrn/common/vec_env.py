@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import importlib
 import pickle
+import sys
 from collections.abc import Callable, Sequence
 from types import ModuleType
 from typing import Any
@@ -35,6 +36,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvO
 
 from sb3_hgrn.common.checks import observation_problem, slot_name
 from sb3_hgrn.common.controllers import resolve_model_paths
+from sb3_hgrn.common.safe_load import load_pickle
 from sb3_hgrn.envs.base import GraphParallelEnv
 from sb3_hgrn.envs.graph import living_neighbors
 from sb3_hgrn.envs.wrappers import as_parallel_env
@@ -484,13 +486,19 @@ class GraphVecEnv(VecEnv):
                 f"The state of {type(self.envs[0]).__name__} cannot be pickled: {error}"
             ) from error
 
-    def set_state(self, state: bytes) -> None:
+    def set_state(self, state: bytes, trust_pickle: bool = False) -> None:
         """Replace the copies and counters by those of :meth:`get_state` (the current copies are
         closed); a state of another copy or agent count raises a ``ValueError`` saying so.
 
-        Unpickling can run code: give it only states from a trusted source.
+        The state is read by :func:`~sb3_hgrn.common.safe_load.restricted_loads`, which builds only
+        numpy arrays and generators, gymnasium spaces and the classes of the modules that define
+        this VecEnv's copies (and the envs they wrap); a state that needs more (an env pickled by
+        value, e.g. one defined in ``__main__``) raises
+        :class:`~sb3_hgrn.common.safe_load.UntrustedPickleError` naming it. ``trust_pickle=True``
+        unpickles it in full, which can run code: only for states you trust.
         """
-        loaded = pickle.loads(state)
+        source = f"the state of {type(self.envs[0]).__name__}"
+        loaded = load_pickle(state, source, trust_pickle, self._env_classes())
         saved, own = (loaded["n_copies"], loaded["n_agents"]), (self.n_copies, self.n_agents)
         if saved != own:
             raise ValueError(
@@ -507,6 +515,25 @@ class GraphVecEnv(VecEnv):
         self._terminations = loaded.get("terminations", np.zeros((self.n_copies, self.n_agents), dtype=bool))
         self._seeds_per_copy = loaded["seeds_per_copy"]
         self._options = loaded["options"]
+
+    def _env_classes(self) -> list[type]:
+        """The classes defined in the modules of this VecEnv's copies, of the envs they wrap (through
+        ``.env``) and of their base classes, ``sb3_hgrn.envs.base`` among them: what an env state
+        may build."""
+        modules, seen = {"sb3_hgrn.envs.base"}, set()
+        for env in self.envs:
+            while env is not None and id(env) not in seen:
+                seen.add(id(env))
+                modules.update(cls.__module__ for cls in type(env).__mro__)
+                env = getattr(env, "env", None)
+        modules -= {"builtins", "abc", "typing"}
+        return [
+            value
+            for module in modules
+            if module in sys.modules
+            for value in vars(sys.modules[module]).values()
+            if isinstance(value, type) and value.__module__ == module
+        ]
 
     def render(self, mode: str | None = None) -> np.ndarray | None:
         """Render copy 0 (its ``render_mode`` is set through ``env_kwargs``)."""

@@ -408,7 +408,7 @@ def model_paths(env_kwargs: dict[str, Any]) -> dict[str, str]:
     """The controllers of ``env_kwargs`` given as saved models' paths, by argument name.
 
     :func:`sb3_hgrn.make_graph_vec_env` loads these before it builds the env (the env itself takes
-    only loaded models); loading one unpickles it, so it can run code.
+    only loaded models), without running code from the files (see ``sb3_hgrn.common.safe_load``).
     """
     return controller_paths(env_kwargs, {f"{side}_controller": SCRIPTED_CONTROLLERS[side] for side in SIDES})
 

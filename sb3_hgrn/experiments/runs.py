@@ -48,6 +48,7 @@ from sb3_hgrn.common.evaluation import RandomGraphPolicy, evaluate_graph_policy
 from sb3_hgrn.common.files import (
     DamagedModelFileError,
     check_model_file,
+    describe_saved_model,
     model_file_path,
     remove_temporary_files,
     save_model_atomically,
@@ -55,6 +56,7 @@ from sb3_hgrn.common.files import (
     write_text_atomically,
 )
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
+from sb3_hgrn.common.safe_load import read_saved_pickle
 from sb3_hgrn.common.vec_env import GraphVecEnv, make_graph_vec_env
 from sb3_hgrn.experiments.callbacks import (
     TEAM_RETURNS_FILE,
@@ -355,6 +357,7 @@ def train_run(
     log_interval: int = 10,
     overwrite: bool = False,
     save_replay_buffer: bool = False,
+    trust_config: bool = False,
 ) -> dict[str, Any]:
     """Train ``config`` into ``folder``, save ``model.zip``, evaluate and write ``eval.json``.
 
@@ -371,6 +374,9 @@ def train_run(
     :param save_freq: save a checkpoint every this many agent-steps (``None``: no checkpoints).
     :param log_interval: team episodes between log dumps.
     :param save_replay_buffer: save the replay buffer beside every checkpoint.
+    :param trust_config: trust the files of the run folder: a checkpoint, replay buffer or training
+        state that only full unpickling can load is loaded so (it can run code); without it, such a
+        file is skipped with a warning (a checkpoint zip: an error).
     :return: the contents of ``eval.json``.
     """
     folder = Path(folder)
@@ -388,13 +394,18 @@ def train_run(
             )
         if checkpoint is not None:
             model = PRESETS[config.preset][0].load(
-                checkpoint, env=env, device=device, tensorboard_log=tensorboard_log, verbose=verbose
+                checkpoint,
+                env=env,
+                device=device,
+                trust_pickle=trust_config,
+                tensorboard_log=tensorboard_log,
+                verbose=verbose,
             )
         if begin.finished:
             if verbose:
                 print(f"Evaluating the finished model {checkpoint} ({model.num_timesteps} agent-steps)")
         elif checkpoint is not None:
-            _resume(folder, model, checkpoint, verbose)
+            _resume(folder, model, checkpoint, verbose, trust_config)
         config.extra = _run_figures(config, env, model)
         write_text_atomically(folder / CONFIG_FILE, yaml.safe_dump(config.to_dict(), sort_keys=False))
 
@@ -438,12 +449,15 @@ def train_run(
     return results
 
 
-def _resume(folder: Path, model: GraphOffPolicyAlgorithm, checkpoint: Path, verbose: int) -> None:
+def _resume(
+    folder: Path, model: GraphOffPolicyAlgorithm, checkpoint: Path, verbose: int, trust_pickle: bool
+) -> None:
     """Bring the run back to ``checkpoint``, whose model is ``model``: ``team_returns.csv`` rewound to
-    its episodes, its replay buffer and training state loaded where they are whole."""
+    its episodes, its replay buffer and training state loaded where they are whole (and need no
+    unpickling beyond the safe loader's unless ``trust_pickle``)."""
     rewind_team_returns(folder / TEAM_RETURNS_FILE, model._episode_num)
-    replay = _load_replay_buffer(model, checkpoint_companion(checkpoint, "replay_buffer"))
-    exact = _load_training_state(model, checkpoint_companion(checkpoint, "training_state"))
+    replay = _load_replay_buffer(model, checkpoint_companion(checkpoint, "replay_buffer"), trust_pickle)
+    exact = _load_training_state(model, checkpoint_companion(checkpoint, "training_state"), trust_pickle)
     if verbose:
         print(
             f"Resuming from {checkpoint} ({model.num_timesteps} agent-steps done, "
@@ -452,29 +466,28 @@ def _resume(folder: Path, model: GraphOffPolicyAlgorithm, checkpoint: Path, verb
         )
 
 
-def _load_replay_buffer(model: GraphOffPolicyAlgorithm, path: Path) -> bool:
-    """Load the replay buffer at ``path`` into ``model``; whether it was loaded (one that is damaged or
-    does not fit is skipped with a warning, leaving the model's empty buffer)."""
+def _load_replay_buffer(model: GraphOffPolicyAlgorithm, path: Path, trust_pickle: bool) -> bool:
+    """Load the replay buffer at ``path`` into ``model``; whether it was loaded (one that is damaged,
+    does not fit or needs ``trust_pickle`` is skipped with a warning, leaving the model's empty buffer)."""
     if not path.is_file():
         return False
     try:
-        model.load_replay_buffer(path)
+        model.load_replay_buffer(path, trust_pickle=trust_pickle)
     except (pickle.UnpicklingError, EOFError, AttributeError, TypeError, ValueError) as error:
         warnings.warn(f"Skipping the replay buffer {path}, which cannot be loaded: {error}", stacklevel=2)
         return False
     return True
 
 
-def _load_training_state(model: GraphOffPolicyAlgorithm, path: Path) -> bool:
+def _load_training_state(model: GraphOffPolicyAlgorithm, path: Path, trust_pickle: bool) -> bool:
     """Restore the training state at ``path`` (env copies, last observation, recurrent state, random
-    states) into ``model``; whether it was restored (one that is damaged or does not fit is skipped
-    with a warning, and the envs reset when training starts)."""
+    states) into ``model``; whether it was restored (one that is damaged, does not fit or needs
+    ``trust_pickle`` is skipped with a warning, and the envs reset when training starts)."""
     if not path.is_file():
         return False
     try:
-        with open(path, "rb") as file:
-            state = pickle.load(file)
-        model.set_training_state(state)
+        state = read_saved_pickle(path, "training state", trust_pickle=trust_pickle)
+        model.set_training_state(state, trust_pickle)
     except (pickle.UnpicklingError, EOFError, AttributeError, KeyError, TypeError, ValueError) as error:
         warnings.warn(f"Skipping the training state {path}, which cannot be loaded: {error}", stacklevel=2)
         return False
@@ -708,7 +721,7 @@ def algorithm_of_zip(path: Path) -> type[GraphOffPolicyAlgorithm]:
     for name in ("sac_hgrn", "soft_hgrn"):
         if f"sb3_hgrn.{name}" in module:
             return getattr(sb3_hgrn, "SACHGRN" if name == "sac_hgrn" else "SoftHGRN")
-    raise ConfigError(f"{path} was not saved by an sb3_hgrn algorithm (policy module {module!r}).")
+    raise ConfigError(f"{path} is not an sb3_hgrn model: it was saved by {describe_saved_model(path)}.")
 
 
 def locate_run(path: str | os.PathLike, env: str | None = None) -> tuple[Path, RunConfig, Path | None]:
@@ -806,6 +819,7 @@ def load_run(
     seed: int | None = None,
     device: str = "auto",
     trust_config: bool = False,
+    trust_pickle: bool = False,
     **env_kwargs: Any,
 ) -> tuple[GraphOffPolicyAlgorithm, GraphVecEnv, RunConfig]:
     """Load a saved run's model onto a fresh copy of its env (``env_kwargs`` over the run's).
@@ -813,6 +827,8 @@ def load_run(
     Models the run's ``config.yml`` names for its env are loaded only from inside the run folder
     unless ``trust_config`` (see :func:`check_stored_model_paths`), and a user env it names is
     imported only if ``env`` names it too or with ``trust_config`` (see :func:`check_stored_env`).
+    The model zip is loaded without running code from it (see ``GraphOffPolicyAlgorithm.load``)
+    unless ``trust_pickle`` or ``trust_config`` (trusting the run folder trusts its files).
     """
     model_path, config, folder = locate_run(path, env)
     if folder is not None:
@@ -825,7 +841,8 @@ def load_run(
         config.seed + EVAL_SEED_OFFSET if seed is None else seed,
         **env_kwargs,
     )
-    return algorithm.load(model_path, env=vec_env, device=device), vec_env, config
+    model = algorithm.load(model_path, env=vec_env, device=device, trust_pickle=trust_pickle or trust_config)
+    return model, vec_env, config
 
 
 def evaluate_run(
@@ -838,13 +855,21 @@ def evaluate_run(
     seed: int | None = None,
     trust_config: bool = False,
     online: bool = False,
+    trust_pickle: bool = False,
     **env_kwargs: Any,
 ) -> dict[str, Any]:
     """Evaluate a saved run (see :func:`load_run`); ``epsilon`` mixes in random valid actions;
     ``online`` acts with the online network (Q-network or actor) of a model that deploys a Polyak
-    average (``policy_kwargs.average_tau``)."""
+    average (``policy_kwargs.average_tau``); ``trust_config``, ``trust_pickle``: see :func:`load_run`."""
     model, vec_env, _ = load_run(
-        path, env=env, n_envs=n_envs, seed=seed, device="cpu", trust_config=trust_config, **env_kwargs
+        path,
+        env=env,
+        n_envs=n_envs,
+        seed=seed,
+        device="cpu",
+        trust_config=trust_config,
+        trust_pickle=trust_pickle,
+        **env_kwargs,
     )
     if online:
         if model.policy.average_network is None:
@@ -870,12 +895,14 @@ def render_run(
     env: str | None = None,
     seed: int | None = None,
     trust_config: bool = False,
+    trust_pickle: bool = False,
     **env_kwargs: Any,
 ) -> int:
     """Run one episode of copy 0 with ``render_mode="rgb_array"`` and write the frames as a GIF.
 
     :param steps: stop after this many steps (default: the whole episode).
     :param trust_config: see :func:`load_run`.
+    :param trust_pickle: see :func:`load_run`.
     :return: the number of frames written.
     """
     from PIL import Image
@@ -888,6 +915,7 @@ def render_run(
         device="cpu",
         render_mode="rgb_array",
         trust_config=trust_config,
+        trust_pickle=trust_pickle,
         **env_kwargs,
     )
     try:
