@@ -4,6 +4,7 @@ import _thread
 import csv
 import json
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -261,9 +262,13 @@ def processes_naming(marker: str) -> list[int]:
 
 
 def assert_gone(marker: str, since: float) -> None:
-    """Fail unless every process naming ``marker`` is gone within ``GONE_WITHIN_S`` s of ``since``."""
-    while processes_naming(marker):
-        assert time.time() - since < GONE_WITHIN_S, f"still running: {processes_naming(marker)}"
+    """Fail unless every process naming ``marker`` is gone within ``GONE_WITHIN_S`` s of ``since``
+    (those left are killed first, so that a failing test leaves none behind)."""
+    while left := processes_naming(marker):
+        if time.time() - since > GONE_WITHIN_S:
+            for pid in left:
+                os.kill(pid, signal.SIGKILL)
+            pytest.fail(f"still running {GONE_WITHIN_S} s after the stop: processes {left}")
         time.sleep(0.5)
 
 
@@ -313,8 +318,10 @@ def test_a_stopped_local_run_ends_its_whole_process_group(busy_cores, tmp_path, 
         ).read_text()
         time.sleep(0.2)
     started = time.time()
-    call_bounded(run.stop)
-    assert_gone(marker, started)
+    try:
+        call_bounded(run.stop)
+    finally:
+        assert_gone(marker, started)
 
 
 def test_a_run_dies_with_the_process_that_started_it(busy_cores, tmp_path):
@@ -361,8 +368,10 @@ def test_a_stopped_ray_task_stops_its_run(local_ray, busy_cores, tmp_path, lost)
     wait_until_started([folder], tmp_path / "train.log")
     assert run.poll() is None
     started = time.time()
-    call_bounded(run.stop)
-    assert_gone(str(tmp_path), started)
+    try:
+        call_bounded(run.stop)
+    finally:
+        assert_gone(str(tmp_path), started)
     assert lock_holder(folder) is None and read_eval(folder) is None
 
 
