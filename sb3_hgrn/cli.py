@@ -540,20 +540,24 @@ def _tune(args: argparse.Namespace) -> int:
         warmup = setup.run_config({}).total_timesteps // 3
     study_name = args.study_name or setup.default_study_name()
     folder = Path(args.folder) / study_name
-    study = tune.run_study(
-        setup,
-        folder,
-        args.n_trials,
-        n_jobs=args.n_jobs,
-        storage=args.storage,
-        study_name=study_name,
-        pruner=tune.make_pruner(args.pruner, args.n_startup_trials, warmup),
-        n_startup_trials=args.n_startup_trials,
-        sampler_seed=args.sampler_seed,
-        threads=args.threads,
-        device=args.device,
-        verbose=args.verbose,
-    )
+    try:
+        study = tune.run_study(
+            setup,
+            folder,
+            args.n_trials,
+            n_jobs=args.n_jobs,
+            storage=args.storage,
+            study_name=study_name,
+            pruner=tune.make_pruner(args.pruner, args.n_startup_trials, warmup),
+            n_startup_trials=args.n_startup_trials,
+            sampler_seed=args.sampler_seed,
+            threads=args.threads,
+            device=args.device,
+            verbose=args.verbose,
+        )
+    except tune.AllTrialsFailed as error:
+        print(f"tune: {error}", file=sys.stderr)
+        return 1
     print(tune.summary(study, folder))
     return 0
 
