@@ -401,3 +401,51 @@ def test_a_sweep_stopped_with_ctrl_c_leaves_no_run_behind(busy_cores, tmp_path, 
         )
     assert_gone(str(tmp_path), pressed[0])
     assert all(lock_holder(folder) is None and read_eval(folder) is None for folder in folders)
+
+
+class RecordingTask:
+    """A Ray remote function as the backend uses it, recording the options of each submission."""
+
+    def __init__(self):
+        self.submitted: list[dict] = []
+        self._options: dict = {}
+
+    def options(self, **options):
+        self._options = options
+        return self
+
+    def remote(self, *args):
+        self.submitted.append(self._options)
+        self._options = {}
+        return "ref"
+
+
+def test_a_ray_task_reserves_the_memory_of_its_replay_buffer(tmp_path):
+    pytest.importorskip("ray")
+    from types import SimpleNamespace
+
+    from sb3_hgrn.cli import train_config
+    from sb3_hgrn.experiments.backends import RayBackend
+    from sb3_hgrn.experiments.runs import make_env, new_model
+
+    backend = RayBackend()
+    backend.ray = SimpleNamespace(is_initialized=lambda: True)  # no Ray instance needed to submit
+    backend._task = RecordingTask()
+    args = [
+        "train",
+        "--env",
+        "uav_mbs_v0",
+        "--preset",
+        "soft_hgrn",
+        "--budget",
+        "ci",
+        "--folder",
+        str(tmp_path),
+    ]
+    for buffer_size in (6000, 12000):
+        backend.start([*args, "--param", f"buffer_size={buffer_size}"], tmp_path / "train.log", threads=1)
+    config = train_config([*args, "--param", "buffer_size=6000"])
+    env = make_env(config, config.n_envs, config.seed)
+    full = new_model(config, env, verbose=0, tensorboard_log=None, device="cpu").replay_buffer.nbytes
+    env.close()
+    assert [options["memory"] for options in backend._task.submitted] == [full, 2 * full]

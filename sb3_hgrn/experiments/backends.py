@@ -251,6 +251,16 @@ class RayTask(RunHandle):
         return bool(ready)
 
 
+def replay_memory(args: list[str]) -> int | None:
+    """Bytes of the full replay buffer of the run ``sb3-hgrn ARGS``
+    (:func:`~sb3_hgrn.experiments.runs.replay_buffer_bytes`); None for a command other than ``train``."""
+    from sb3_hgrn.cli import train_config  # imported here: the command line imports this module
+    from sb3_hgrn.experiments.runs import replay_buffer_bytes
+
+    config = train_config(args)
+    return None if config is None else replay_buffer_bytes(config)
+
+
 class RayBackend(Backend):
     """Every run a Ray task with ``num_cpus=cpus_per_run`` and ``num_gpus=gpus_per_run``.
 
@@ -263,6 +273,9 @@ class RayBackend(Backend):
     mount at the same path.
 
     :param address: address of the cluster's head node (``ray.init(address=...)``).
+    Each run's task also reserves the memory of its full replay buffer (Ray's ``memory`` resource,
+    in bytes), so that Ray places no more runs on a node than its memory holds.
+
     :param cpus_per_run: CPUs Ray reserves per run; also the run's torch threads unless given.
     :param gpus_per_run: GPUs Ray reserves per run (``CUDA_VISIBLE_DEVICES`` names them to the run).
     """
@@ -283,10 +296,14 @@ class RayBackend(Backend):
         self._task = ray.remote(num_cpus=cpus_per_run, num_gpus=gpus_per_run)(run_logged)
 
     def start(self, args: list[str], log_path: Path, threads: int | None) -> RunHandle:
+        """Submit the run as a task that reserves, besides its CPUs and GPUs, the ``memory`` its replay
+        buffer takes once full (:func:`replay_memory`)."""
         if not self.ray.is_initialized():  # connect at the first run: not at all when none is missing
             self.ray.init(address=self.address)
         log_path = log_path.absolute()
-        return RayTask(self.ray, self._task.remote(args, str(log_path), threads, os.getcwd()), log_path)
+        memory = replay_memory(args)
+        task = self._task if memory is None else self._task.options(memory=memory)
+        return RayTask(self.ray, task.remote(args, str(log_path), threads, os.getcwd()), log_path)
 
     def default_threads(self, jobs: int) -> int | None:
         return max(1, int(self.cpus_per_run))
