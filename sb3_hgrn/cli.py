@@ -25,7 +25,7 @@ from pathlib import Path
 from sb3_hgrn.common.files import ModelFileError
 from sb3_hgrn.common.vec_env import REGISTERED_ENVS
 from sb3_hgrn.experiments.backends import BACKENDS, Backend, make_backend
-from sb3_hgrn.experiments.config import BUDGETS, ENV_SPEC_HELP, ConfigError, parse_assignments
+from sb3_hgrn.experiments.config import BUDGETS, ENV_SPEC_HELP, ConfigError, RunConfig, parse_assignments
 from sb3_hgrn.presets import TABLE1
 
 
@@ -391,11 +391,11 @@ def _set_threads(threads: int | None) -> None:
         torch.set_num_threads(threads)
 
 
-def _train(args: argparse.Namespace) -> int:
+def _train_config(args: argparse.Namespace) -> RunConfig:
+    """The run configuration of parsed ``train`` arguments."""
     from sb3_hgrn.experiments.config import resolve_config
-    from sb3_hgrn.experiments.runs import run_folder, train_run
 
-    config = resolve_config(
+    return resolve_config(
         args.env,
         args.preset,
         args.budget,
@@ -406,6 +406,24 @@ def _train(args: argparse.Namespace) -> int:
         config_file=args.config,
         keep_checkpoints=args.keep_checkpoints,
     )
+
+
+def train_config(argv: Sequence[str]) -> RunConfig | None:
+    """The run configuration of the command line ``sb3-hgrn ARGV`` when it is a ``train``, else None;
+    bad arguments raise :class:`ConfigError`."""
+    if not argv or argv[0] != "train":
+        return None
+    try:
+        args = build_parser().parse_args(list(argv))
+    except SystemExit as error:  # argparse has printed why
+        raise ConfigError(f"Malformed train arguments: {' '.join(argv)}") from error
+    return _train_config(args)
+
+
+def _train(args: argparse.Namespace) -> int:
+    from sb3_hgrn.experiments.runs import run_folder, train_run
+
+    config = _train_config(args)
     _set_threads(args.threads)
     folder = run_folder(args.folder, config.env, config.preset, config.seed)
     results = train_run(
@@ -570,20 +588,24 @@ def _tune(args: argparse.Namespace) -> int:
         warmup = setup.run_config({}).total_timesteps // 3
     study_name = args.study_name or setup.default_study_name()
     folder = Path(args.folder) / study_name
-    study = tune.run_study(
-        setup,
-        folder,
-        args.n_trials,
-        n_jobs=args.n_jobs,
-        storage=args.storage,
-        study_name=study_name,
-        pruner=tune.make_pruner(args.pruner, args.n_startup_trials, warmup),
-        n_startup_trials=args.n_startup_trials,
-        sampler_seed=args.sampler_seed,
-        threads=args.threads,
-        device=args.device,
-        verbose=args.verbose,
-    )
+    try:
+        study = tune.run_study(
+            setup,
+            folder,
+            args.n_trials,
+            n_jobs=args.n_jobs,
+            storage=args.storage,
+            study_name=study_name,
+            pruner=tune.make_pruner(args.pruner, args.n_startup_trials, warmup),
+            n_startup_trials=args.n_startup_trials,
+            sampler_seed=args.sampler_seed,
+            threads=args.threads,
+            device=args.device,
+            verbose=args.verbose,
+        )
+    except tune.AllTrialsFailed as error:
+        print(f"tune: {error}", file=sys.stderr)
+        return 1
     print(tune.summary(study, folder))
     return 0
 

@@ -164,6 +164,19 @@ def test_compact_storage_dtypes():
     assert buffer.nbytes > 0
 
 
+def test_expected_bytes_count_the_full_buffer_without_allocating_it():
+    buffer = make_buffer(steps=5)
+    arguments = (buffer.observation_space, buffer.action_space, N_AGENTS * N_COPIES, N_AGENTS, STATE)
+    # per agent-transition: obs and next obs 2 x 2 int8, neighbours 2 x 2 int8, action 1, reward 4,
+    # terminated 1, alive 1, state 4 float32; and one episode-start flag per copy and step
+    assert GraphReplayBuffer.expected_bytes(5 * 6, *arguments, "float32") == 5 * 6 * 31 + 5 * 2
+    assert GraphReplayBuffer.expected_bytes(5 * 6, *arguments, "float32") == buffer.nbytes
+    grouped = gym.spaces.Dict({**buffer.observation_space.spaces, "group": gym.spaces.Discrete(2)})
+    assert GraphReplayBuffer.expected_bytes(5 * 6, grouped, *arguments[1:], "float32") == buffer.nbytes + 30
+    huge = GraphReplayBuffer.expected_bytes(10**12, *arguments)  # a terabyte, never allocated
+    assert huge == 10**12 // 6 * 6 * (31 - 8) + 10**12 // 6 * 2  # the state in float16
+
+
 def test_empty_buffer_and_bad_slot_count():
     with pytest.raises(RuntimeError, match="empty"):
         make_buffer().sample(4)

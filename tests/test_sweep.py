@@ -1,10 +1,13 @@
 """Backends of the sweeps (local processes, Ray tasks) and the ``sb3-hgrn sweep`` grid."""
 
+import _thread
 import csv
 import json
 import os
+import signal
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -12,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from sb3_hgrn.cli import main
+from sb3_hgrn.experiments import backends
 from sb3_hgrn.experiments.backends import LocalBackend
 from sb3_hgrn.experiments.config import ConfigError
 from sb3_hgrn.experiments.lock import lock_holder
@@ -26,11 +30,15 @@ from sb3_hgrn.experiments.sweep import (
     run_grid,
     split_values,
 )
-from sb3_hgrn.experiments.table1 import format_number, run_sweep
+from sb3_hgrn.experiments.table1 import Job, format_number, run_jobs, run_sweep
 
 REPO = Path(__file__).resolve().parents[1]
 CHILD_ENV = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
 TABLE = {"budget": "ci", "n_seeds": 1, "presets": ["dqn", "soft_hgrn"], "envs": ["uav_mbs_v0"], "jobs": 2}
+GONE_WITHIN_S = 30
+"""Seconds within which a stopped run's processes must be gone, with both cores busy."""
+START_WITHIN_S = 300
+"""Seconds a run may take to start (and lock its folder) on a loaded machine."""
 
 
 def test_grid_values_split_and_parse(tmp_path):
@@ -227,17 +235,217 @@ def test_ray_backend_reproduces_the_whole_ci_table(local_ray, tmp_path):
     assert markdown[0] == markdown[1]
 
 
-def test_a_stopped_ray_task_stops_its_run(local_ray, tmp_path):
-    from sb3_hgrn.experiments.backends import RayBackend
+# --- stopping runs: bounded, with both cores busy ----------------------------------------------------
 
-    args = ["train", "--env", "uav_mbs_v0", "--preset", "soft_hgrn", "--budget", "ci", "--seed", "0"]
-    args += ["--timesteps", "1200000", "--threads", "1", "--folder", str(tmp_path)]
-    folder = tmp_path / "uav_mbs_v0" / "soft_hgrn" / "seed_0"
-    run = RayBackend().start(args, tmp_path / "train.log", threads=1)
+
+@pytest.fixture
+def busy_cores():
+    """Two busy-loop processes for the length of a test, as other work on a shared 2-core machine."""
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+    yield
+    for hog in hogs:
+        hog.kill()
+        hog.wait()
+
+
+def processes_naming(marker: str) -> list[int]:
+    """Pids of the living processes whose command line contains ``marker`` (read from /proc)."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        try:
+            command = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:  # not a process, or gone meanwhile
+            continue
+        if entry.name.isdigit() and marker in command and int(entry.name) != os.getpid():
+            pids.append(int(entry.name))
+    return pids
+
+
+def assert_gone(marker: str, since: float) -> None:
+    """Fail unless every process naming ``marker`` is gone within ``GONE_WITHIN_S`` s of ``since``
+    (those left are killed first, so that a failing test leaves none behind)."""
+    while left := processes_naming(marker):
+        if time.time() - since > GONE_WITHIN_S:
+            for pid in left:
+                os.kill(pid, signal.SIGKILL)
+            pytest.fail(f"still running {GONE_WITHIN_S} s after the stop: processes {left}")
+        time.sleep(0.5)
+
+
+def call_bounded(function, seconds: float = GONE_WITHIN_S) -> None:
+    """Call ``function()`` in a thread; fail (not hang) when it has not returned after ``seconds``."""
+    thread = threading.Thread(target=function, daemon=True)
+    thread.start()
+    thread.join(seconds)
+    assert not thread.is_alive(), f"{function} did not return within {seconds} s"
+
+
+def train_args_into(folder: Path, seed: int = 0) -> list[str]:
+    """``train`` arguments of a long run (hours) into the run folders under ``folder``."""
+    args = ["train", "--env", "uav_mbs_v0", "--preset", "soft_hgrn", "--budget", "ci", "--seed", str(seed)]
+    return [*args, "--timesteps", "100000000", "--threads", "1", "--folder", str(folder)]
+
+
+def wait_until_started(folders: list[Path], log: Path) -> None:
+    """Wait until every run folder is locked: its run has started training."""
     started = time.time()
-    while lock_holder(folder) is None:  # the run holds its folder's lock once it has started
-        assert run.poll() is None and time.time() - started < 120, (tmp_path / "train.log").read_text()
+    while any(lock_holder(folder) is None for folder in folders):
+        assert time.time() - started < START_WITHIN_S, log.read_text() if log.exists() else "no log"
+        time.sleep(0.5)
+
+
+STUBBORN = """
+import signal, subprocess, sys, time
+signal.signal(signal.SIGTERM, signal.SIG_IGN)
+if "grandchild" not in sys.argv:
+    subprocess.Popen([sys.executable, __file__, "grandchild"])
+time.sleep(3600)
+"""
+"""A run's script that ignores SIGTERM and starts a grandchild that ignores it too."""
+
+
+def test_a_stopped_local_run_ends_its_whole_process_group(busy_cores, tmp_path, monkeypatch):
+    """A run whose processes ignore SIGTERM, one of them a grandchild: stop() kills them all."""
+    script = tmp_path / "stubborn.py"
+    script.write_text(STUBBORN)
+    monkeypatch.setattr(backends, "python_command", lambda args: [sys.executable, str(script), *args])
+    marker = str(script)
+    run = LocalBackend().start([], tmp_path / "log.txt", threads=1)
+    started = time.time()
+    while len(processes_naming(marker)) < 2:  # the child and its grandchild
+        assert time.time() - started < START_WITHIN_S and run.poll() is None, (
+            tmp_path / "log.txt"
+        ).read_text()
         time.sleep(0.2)
     started = time.time()
-    run.stop()
-    assert time.time() - started < 20 and lock_holder(folder) is None and read_eval(folder) is None
+    try:
+        call_bounded(run.stop)
+    finally:
+        assert_gone(marker, started)
+
+
+def test_a_run_dies_with_the_process_that_started_it(busy_cores, tmp_path):
+    """A sweep killed outright (no Ctrl-C to catch) takes its runs with it."""
+    folder = tmp_path / "uav_mbs_v0" / "soft_hgrn" / "seed_0"
+    script = (
+        "import sys, time; from pathlib import Path; from sb3_hgrn.experiments.backends import LocalBackend; "
+        f"LocalBackend().start({train_args_into(tmp_path)!r}, Path({str(tmp_path / 'train.log')!r}), 1); "
+        "time.sleep(3600)"
+    )
+    sweep = subprocess.Popen([sys.executable, "-c", script], env=CHILD_ENV)
+    try:
+        wait_until_started([folder], tmp_path / "train.log")
+    finally:
+        sweep.kill()
+        sweep.wait()
+    assert_gone(str(tmp_path), time.time())
+    assert read_eval(folder) is None
+
+
+class LosingRay:
+    """Ray as the sweep sees it, but every cancel without ``force`` lost on its way."""
+
+    def __init__(self, ray):
+        self.ray = ray
+
+    def __getattr__(self, name):
+        return getattr(self.ray, name)
+
+    def cancel(self, ref, force=False):
+        if force:
+            self.ray.cancel(ref, force=True)
+
+
+@pytest.mark.parametrize("lost", [False, True], ids=["interrupted", "interrupt-lost"])
+def test_a_stopped_ray_task_stops_its_run(local_ray, busy_cores, tmp_path, lost):
+    from sb3_hgrn.experiments.backends import RayBackend
+
+    folder = tmp_path / "uav_mbs_v0" / "soft_hgrn" / "seed_0"
+    backend = RayBackend()
+    if lost:
+        backend.ray = LosingRay(local_ray)
+    run = backend.start(train_args_into(tmp_path), tmp_path / "train.log", threads=1)
+    wait_until_started([folder], tmp_path / "train.log")
+    assert run.poll() is None
+    started = time.time()
+    try:
+        call_bounded(run.stop)
+    finally:
+        assert_gone(str(tmp_path), started)
+    assert lock_holder(folder) is None and read_eval(folder) is None
+
+
+@pytest.mark.parametrize("backend_name", ["local", "ray"])
+def test_a_sweep_stopped_with_ctrl_c_leaves_no_run_behind(busy_cores, tmp_path, request, backend_name):
+    """Ctrl-C (KeyboardInterrupt in the sweep's main thread) while two runs train: both are gone."""
+    if backend_name == "ray":
+        request.getfixturevalue("local_ray")
+    folders = [tmp_path / "uav_mbs_v0" / "soft_hgrn" / f"seed_{seed}" for seed in (0, 1)]
+    jobs = [Job("uav_mbs_v0", "soft_hgrn", seed, folder) for seed, folder in enumerate(folders)]
+    pressed = []
+
+    def press_ctrl_c() -> None:
+        wait_until_started(folders, folders[1] / "train.log")
+        pressed.append(time.time())
+        _thread.interrupt_main()
+
+    threading.Thread(target=press_ctrl_c, daemon=True).start()
+    with pytest.raises(KeyboardInterrupt):
+        run_jobs(
+            jobs,
+            lambda job: train_args_into(tmp_path, job.seed),
+            jobs=2,
+            threads=1,
+            log=lambda message: None,
+            backend=backends.make_backend(backend_name),
+        )
+    assert_gone(str(tmp_path), pressed[0])
+    assert all(lock_holder(folder) is None and read_eval(folder) is None for folder in folders)
+
+
+class RecordingTask:
+    """A Ray remote function as the backend uses it, recording the options of each submission."""
+
+    def __init__(self):
+        self.submitted: list[dict] = []
+        self._options: dict = {}
+
+    def options(self, **options):
+        self._options = options
+        return self
+
+    def remote(self, *args):
+        self.submitted.append(self._options)
+        self._options = {}
+        return "ref"
+
+
+def test_a_ray_task_reserves_the_memory_of_its_replay_buffer(tmp_path):
+    pytest.importorskip("ray")
+    from types import SimpleNamespace
+
+    from sb3_hgrn.cli import train_config
+    from sb3_hgrn.experiments.backends import RayBackend
+    from sb3_hgrn.experiments.runs import make_env, new_model
+
+    backend = RayBackend()
+    backend.ray = SimpleNamespace(is_initialized=lambda: True)  # no Ray instance needed to submit
+    backend._task = RecordingTask()
+    args = [
+        "train",
+        "--env",
+        "uav_mbs_v0",
+        "--preset",
+        "soft_hgrn",
+        "--budget",
+        "ci",
+        "--folder",
+        str(tmp_path),
+    ]
+    for buffer_size in (6000, 12000):
+        backend.start([*args, "--param", f"buffer_size={buffer_size}"], tmp_path / "train.log", threads=1)
+    config = train_config([*args, "--param", "buffer_size=6000"])
+    env = make_env(config, config.n_envs, config.seed)
+    full = new_model(config, env, verbose=0, tensorboard_log=None, device="cpu").replay_buffer.nbytes
+    env.close()
+    assert [options["memory"] for options in backend._task.submitted] == [full, 2 * full]

@@ -256,3 +256,50 @@ def test_pruners(optuna, tmp_path, capsys):
         main(["tune", *TOY, "--pruner", "hyperband", "--folder", str(tmp_path / "t")])
     assert "Unknown pruner 'hyperband'; available: median, halving, none" in capsys.readouterr().err
     assert not (tmp_path / "t").exists()
+
+
+# --- failing trials -------------------------------------------------------------------------------
+
+DIVERGING = "1.0e+30"
+"""A learning rate whose first gradient steps make the network's weights, and so its logits, NaN."""
+DIVERGING_SPACE = f"soft_hgrn:\n  learning_rate: {{type: categorical, choices: [1.0e-3, {DIVERGING}]}}\n"
+SMALL = {"timesteps": 300, "eval_freq": 150, "eval_episodes": 1}
+SMALL_ARGS = ["--timesteps", "300", "--eval-freq", "150", "--eval-episodes", "1"]
+FIXED = {"env_params": {"n_agents": 5}, "params": {"learning_starts": 50}}
+NAN_ERROR = "ValueError: Expected parameter logits"
+
+
+def test_a_failing_trial_is_recorded_and_the_study_goes_on(optuna, tmp_path, caplog):
+    from sb3_hgrn.experiments.tune import TuneSetup, default_storage, load_search_space, open_study, run_study
+
+    space = load_search_space("soft_hgrn", write(tmp_path / "space.yml", DIVERGING_SPACE))
+    setup = TuneSetup("surviving_v0", "soft_hgrn", "ci", 0, space, **SMALL, **FIXED)
+    study = open_study(setup, default_storage(tmp_path), "s")
+    for learning_rate in (1e30, 1e-3, 1e30):
+        study.enqueue_trial({"learning_rate": learning_rate})
+    study = run_study(setup, tmp_path, n_trials=3, study_name="s", pruner=optuna.pruners.NopPruner())
+    state = optuna.trial.TrialState
+    assert [trial.state for trial in study.trials] == [state.FAIL, state.COMPLETE, state.FAIL]
+    assert study.best_trial.number == 1 and (tmp_path / "best.yml").exists()
+    assert study.trials[0].user_attrs["error"].startswith(NAN_ERROR)
+    rows = list(csv.DictReader((tmp_path / "trials.csv").open()))
+    assert [row["state"] for row in rows] == ["FAIL", "COMPLETE", "FAIL"]
+    assert rows[0]["error"].startswith(NAN_ERROR) and rows[1]["error"] == ""
+    assert len(rows[2]["error"]) <= 300  # the first line of the message, not the whole tensor
+    log = caplog.text  # Optuna's warnings
+    assert "Trial 0 failed" in log and "Trial 2 failed" in log and "Expected parameter logits" in log
+
+
+def test_a_study_whose_every_trial_fails_ends_with_an_error(optuna, tmp_path, capfd):
+    space = write(
+        tmp_path / "space.yml",
+        f"soft_hgrn:\n  learning_rate: {{type: categorical, choices: [{DIVERGING}]}}\n",
+    )
+    args = ["tune", *TOY, *SMALL_ARGS, "--n-trials", "2", "--pruner", "none", "--search-space", str(space)]
+    args += ["--verbose", "0", "--env-param", "n_agents=5", "--param", "learning_starts=50"]
+    assert main([*args, "--folder", str(tmp_path / "tune"), "--study-name", "s"]) == 1
+    message = capfd.readouterr().err
+    assert "tune: Every trial of the study 's' failed (2 of 2); the last, trial 1" in message
+    assert NAN_ERROR in message and str(tmp_path / "tune" / "s" / "trials.csv") in message
+    rows = list(csv.DictReader((tmp_path / "tune" / "s" / "trials.csv").open()))
+    assert [row["state"] for row in rows] == ["FAIL", "FAIL"]

@@ -113,23 +113,14 @@ class GraphReplayBuffer(BaseBuffer):
         self.buffer_size = max(buffer_size // n_envs, 2)
         self.n_agents = n_agents
         self.n_copies = n_envs // n_agents
-        rows = (self.buffer_size, self.n_copies, n_agents)
-        obs_space = observation_space["obs"]
-        index_dtype = smallest_index_dtype(n_agents)
-        n_neighbors = observation_space["neighbors"].shape[0]
-        action_dtype = np.uint8 if action_space.n <= 256 else np.int64
-        self.observations = np.zeros((*rows, *obs_space.shape), dtype=obs_space.dtype)
+        layout = self.storage_layout(
+            buffer_size, observation_space, action_space, n_envs, n_agents, state_dim, hidden_dtype
+        )
         # np.zeros maps untouched pages lazily (zeros_like would write every byte up front)
-        self.next_observations = np.zeros(self.observations.shape, dtype=obs_space.dtype)
-        self.neighbors = np.zeros((*rows, n_neighbors), dtype=index_dtype)
-        self.next_neighbors = np.zeros(self.neighbors.shape, dtype=index_dtype)
-        self.actions = np.zeros(rows, dtype=action_dtype)
-        self.rewards = np.zeros(rows, dtype=np.float32)
-        self.terminated = np.zeros(rows, dtype=bool)
-        self.alive = np.zeros(rows, dtype=bool)
-        self.hidden = np.zeros((*rows, state_dim), dtype=hidden_dtype)
-        self.episode_starts = np.zeros(rows[:2], dtype=bool)
-        self.groups = np.zeros(rows, dtype=np.int8) if "group" in observation_space.spaces else None
+        for name, (shape, dtype) in layout.items():
+            setattr(self, name, np.zeros(shape, dtype=dtype))
+        if "groups" not in layout:
+            self.groups = None
         available = available_memory()
         if available is not None and self.nbytes > available:
             warnings.warn(
@@ -137,6 +128,60 @@ class GraphReplayBuffer(BaseBuffer):
                 f"{available / 2**30:.1f} GiB of memory are available; lower buffer_size.",
                 stacklevel=2,
             )
+
+    @staticmethod
+    def storage_layout(
+        buffer_size: int,
+        observation_space: spaces.Dict,
+        action_space: spaces.Discrete,
+        n_envs: int,
+        n_agents: int,
+        state_dim: int,
+        hidden_dtype: np.dtype | str = np.float16,
+    ) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+        """Shape and dtype of every storage array of a buffer of these arguments (those of the
+        constructor), rows ``(steps, n_copies, n_agents)``: ``observations`` and
+        ``next_observations`` ``(*rows, *obs_shape)``, ``neighbors`` and ``next_neighbors`` ``(*rows,
+        max_neighbors)``, ``actions``, ``rewards``, ``terminated``, ``alive`` ``rows``, ``hidden``
+        ``(*rows, state_dim)``, ``episode_starts`` ``(steps, n_copies)`` and, with agent groups,
+        ``groups`` ``rows``."""
+        rows = (max(buffer_size // n_envs, 2), n_envs // n_agents, n_agents)
+        obs_space = observation_space["obs"]
+        index_dtype = smallest_index_dtype(n_agents)
+        neighbors = (*rows, observation_space["neighbors"].shape[0])
+        layout = {
+            "observations": ((*rows, *obs_space.shape), obs_space.dtype),
+            "next_observations": ((*rows, *obs_space.shape), obs_space.dtype),
+            "neighbors": (neighbors, index_dtype),
+            "next_neighbors": (neighbors, index_dtype),
+            "actions": (rows, np.dtype(np.uint8 if action_space.n <= 256 else np.int64)),
+            "rewards": (rows, np.dtype(np.float32)),
+            "terminated": (rows, np.dtype(bool)),
+            "alive": (rows, np.dtype(bool)),
+            "hidden": ((*rows, state_dim), np.dtype(hidden_dtype)),
+            "episode_starts": (rows[:2], np.dtype(bool)),
+        }
+        if "group" in observation_space.spaces:
+            layout["groups"] = (rows, np.dtype(np.int8))
+        return layout
+
+    @classmethod
+    def expected_bytes(
+        cls,
+        buffer_size: int,
+        observation_space: spaces.Dict,
+        action_space: spaces.Discrete,
+        n_envs: int,
+        n_agents: int,
+        state_dim: int,
+        hidden_dtype: np.dtype | str = np.float16,
+    ) -> int:
+        """Bytes a buffer of these arguments (those of the constructor) holds once full, without
+        allocating it: :attr:`nbytes` of such a buffer."""
+        layout = cls.storage_layout(
+            buffer_size, observation_space, action_space, n_envs, n_agents, state_dim, hidden_dtype
+        )
+        return sum(int(np.prod(shape)) * dtype.itemsize for shape, dtype in layout.values())
 
     @property
     def nbytes(self) -> int:

@@ -37,6 +37,7 @@ import sys
 import time
 import warnings
 from collections.abc import Collection
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -44,6 +45,7 @@ import numpy as np
 import yaml
 from stable_baselines3.common.callbacks import BaseCallback
 
+from sb3_hgrn.common.buffers import GraphReplayBuffer
 from sb3_hgrn.common.evaluation import RandomGraphPolicy, evaluate_graph_policy
 from sb3_hgrn.common.files import (
     DamagedModelFileError,
@@ -345,6 +347,36 @@ def new_model(
         raise ConfigError(
             f"Cannot build preset {config.preset} with arguments {config.hyperparams}: {error}"
         ) from error
+
+
+def replay_buffer_bytes(config: RunConfig) -> int:
+    """Bytes the replay buffer of a run of ``config`` holds once full
+    (:meth:`~sb3_hgrn.common.buffers.GraphReplayBuffer.expected_bytes`), without allocating it: a model
+    is built on one env copy, with a buffer of one batch, for the spaces and the recurrent-state width."""
+    env = make_env(config, 1, config.seed)
+    try:
+        slots = config.n_envs * env.n_agents
+        algorithm, kwargs = preset_kwargs(config.preset, paper=config.paper, n_envs=slots)
+        kwargs = merge(kwargs, config.hyperparams)
+        defaults = inspect.signature(algorithm.__init__).parameters
+        buffer_size, batch_size = (
+            kwargs.get(name, defaults[name].default) for name in ("buffer_size", "batch_size")
+        )
+        one_batch = {**config.hyperparams, "buffer_size": batch_size * env.n_agents}
+        model = new_model(
+            replace(config, hyperparams=one_batch), env, verbose=0, tensorboard_log=None, device="cpu"
+        )
+    finally:
+        env.close()
+    return GraphReplayBuffer.expected_bytes(
+        buffer_size,
+        model.observation_space,
+        model.action_space,
+        slots,
+        env.n_agents,
+        model.policy.state_dim,
+        model.hidden_dtype,
+    )
 
 
 def train_run(

@@ -215,7 +215,8 @@ def run_jobs(
     Each process writes its output to its folder's ``train.log``. A job succeeds when its process
     exits with status 0 and leaves a complete ``eval.json``; a failed one is logged with the end of
     its log and the others go on. A job whose folder another process has locked (a run going on
-    there, see :mod:`sb3_hgrn.experiments.lock`) is not started and counts as failed.
+    there, see :mod:`sb3_hgrn.experiments.lock`) is not started and counts as failed. Interrupted
+    (Ctrl-C), it stops the runs going on (:func:`stop_runs`) before it raises ``KeyboardInterrupt``.
 
     :param threads: cap of the processes' OpenMP / MKL threads (``None``: left as they are).
     :param on_finished: called after every finished job, and when interrupted (e.g. to rewrite tables).
@@ -262,12 +263,20 @@ def run_jobs(
                 if on_finished is not None:
                     on_finished()
     except KeyboardInterrupt:
-        for _, run, _ in running:
-            run.stop()
+        stop_runs([run for _, run, _ in running])
         if on_finished is not None:
             on_finished()
         raise
     return failed
+
+
+def stop_runs(runs: Sequence[RunHandle]) -> None:
+    """Stop ``runs`` together: every one interrupted first, then each stopped
+    (:meth:`~sb3_hgrn.experiments.backends.RunHandle.stop`), so that their grace times overlap."""
+    for run in runs:
+        run.interrupt()
+    for run in runs:
+        run.stop()
 
 
 def _tail(path: Path, lines: int = 15) -> str:

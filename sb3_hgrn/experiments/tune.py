@@ -4,12 +4,16 @@ Every trial samples algorithm arguments from the preset's search space (``hyperp
 or a file of one's own), trains one run of the budget in memory with the study's seed, evaluates it
 every ``eval_freq`` agent-steps (reporting the mean team return to the pruner, which may stop it early)
 and at the end; the objective is the last evaluation's mean team return, maximised by a TPE sampler.
+A trial whose training fails (:data:`TRIAL_ERRORS`: a diverged run's NaN logits, a failed check, ...)
+is recorded as failed, its error logged with its number and kept in ``trials.csv``, and the study goes
+on; a study whose every trial failed ends with :class:`AllTrialsFailed`.
 
 A tune folder (``<folder>/<study name>/``) holds::
 
     study.db                    the study (the default storage: SQLite)
     best.yml                    the best trial's algorithm arguments as a config file for ``train --config``
-    trials.csv                  one row per trial: number, state, value, agent-steps, start, duration, params
+    trials.csv                  one row per trial: number, state, value, agent-steps, start, duration,
+                                error (of a failed trial), params
     optimization_history.png    value of every trial and the best so far (once a trial is complete)
     param_importances.png       Optuna's parameter importances (once two trials are complete)
 
@@ -78,6 +82,18 @@ OPEN_RETRY_PAUSE = 0.5
 """Seconds before the second try at opening a storage; the n-th waits n times as long."""
 SETUP_ATTR = "sb3_hgrn_setup"
 """Study user attribute holding :meth:`TuneSetup.describe`: a worker joins only a study of its setup."""
+ERROR_ATTR = "error"
+"""Trial user attribute holding the error that failed the trial (:func:`describe_error`)."""
+TRIAL_ERRORS = (ValueError, RuntimeError, ArithmeticError)
+"""Errors that fail one trial (diverged training, NaN logits, arguments that do not fit together, out
+of memory) while the study goes on; any other error stops the worker."""
+ERROR_CHARS = 300
+"""Longest error message kept with a trial."""
+
+
+class AllTrialsFailed(RuntimeError):
+    """Every trial of a study failed: none completed nor was pruned (the message says why the last one
+    failed)."""
 
 
 # --- search spaces --------------------------------------------------------------------------------
@@ -362,6 +378,16 @@ class Objective:
         self.verbose = verbose
 
     def __call__(self, trial: Trial) -> float:
+        """Train and evaluate ``trial``; an error of :data:`TRIAL_ERRORS` is recorded with the trial
+        (:data:`ERROR_ATTR`) before it fails it."""
+        try:
+            return self.train(trial)
+        except TRIAL_ERRORS as error:
+            trial.set_user_attr(ERROR_ATTR, describe_error(error))
+            raise
+
+    def train(self, trial: Trial) -> float:
+        """The body of :meth:`__call__`: the trial's last mean team return."""
         config = self.setup.run_config(suggest(trial, self.setup.search_space))
         env = make_env(config, config.n_envs, config.seed)
         eval_env = make_env(config, config.eval_n_envs, config.seed + EVAL_SEED_OFFSET)
@@ -384,6 +410,14 @@ class Objective:
             env.close()
             eval_env.close()
         return float(callback.last_mean_return)
+
+
+def describe_error(error: BaseException) -> str:
+    """``Type: first line of the message``, at most :data:`ERROR_CHARS` characters (a NaN check's
+    message goes on with the whole tensor)."""
+    lines = str(error).strip().splitlines()
+    text = f"{type(error).__name__}: {lines[0] if lines else ''}"
+    return text if len(text) <= ERROR_CHARS else text[: ERROR_CHARS - 3] + "..."
 
 
 # --- studies --------------------------------------------------------------------------------------
@@ -526,14 +560,16 @@ def _optimize(
     device: str,
     verbose: int,
 ) -> None:
-    """Run ``n_trials`` trials of the study in this process (also the entry of a worker process)."""
+    """Run ``n_trials`` trials of the study in this process (also the entry of a worker process); a
+    trial failing with an error of :data:`TRIAL_ERRORS` is recorded as failed and logged by Optuna
+    with its number and the error, and the next trial starts."""
     import torch
 
     torch.set_num_threads(threads)
     _set_optuna_verbosity(verbose)
     sampler = optuna.samplers.TPESampler(n_startup_trials=n_startup_trials, seed=sampler_seed)
     study = open_study(setup, storage, study_name, sampler, pruner)
-    study.optimize(Objective(setup, device=device, verbose=verbose), n_trials=n_trials)
+    study.optimize(Objective(setup, device=device, verbose=verbose), n_trials=n_trials, catch=TRIAL_ERRORS)
 
 
 def _set_optuna_verbosity(verbose: int) -> None:
@@ -556,7 +592,9 @@ def run_study(
     verbose: int = 0,
 ) -> optuna.Study:
     """Run ``n_trials`` more trials of the study of ``setup``, then write the tune folder's results
-    (:func:`write_results`); returns the study.
+    (:func:`write_results`); returns the study. Failed trials are recorded and the others go on, but
+    when every trial of the study has failed it raises :class:`AllTrialsFailed` (after writing the
+    results).
 
     :param folder: the tune folder (results, and the default SQLite storage ``study.db``).
     :param n_jobs: worker processes, each running its share of the trials with ``threads`` torch
@@ -607,7 +645,23 @@ def run_study(
                 future.result()
     study = optuna.load_study(study_name=study_name, storage=open_storage(storage))
     write_results(study, setup, folder)
+    check_some_trial_ran(study, folder)
     return study
+
+
+def check_some_trial_ran(study: optuna.Study, folder: str | os.PathLike) -> None:
+    """Raise :class:`AllTrialsFailed` when the study has failed trials and none that completed or was
+    pruned, naming the error of its last failed trial."""
+    trials = study.get_trials(deepcopy=False)
+    failed = [trial for trial in trials if trial.state == TrialState.FAIL]
+    if not failed or any(trial.state in (TrialState.COMPLETE, TrialState.PRUNED) for trial in trials):
+        return
+    last = failed[-1]
+    error = last.user_attrs.get(ERROR_ATTR, "its error is in the log above")
+    raise AllTrialsFailed(
+        f"Every trial of the study {study.study_name!r} failed ({len(failed)} of {len(trials)}); the last, "
+        f"trial {last.number} with {last.params}: {error}. See {Path(folder) / TRIALS_FILE}."
+    )
 
 
 # --- results --------------------------------------------------------------------------------------
@@ -630,8 +684,8 @@ def write_results(study: optuna.Study, setup: TuneSetup, folder: str | os.PathLi
 
 def write_trials_csv(trials: list[FrozenTrial], names: list[str], path: Path) -> None:
     """One row per trial: ``number``, ``state``, ``value`` (last mean team return), ``agent_steps``
-    trained, ``last_step`` (agent-steps of the last evaluation), ``datetime_start``, ``duration_s`` and
-    ``params_<name>`` per searched parameter."""
+    trained, ``last_step`` (agent-steps of the last evaluation), ``datetime_start``, ``duration_s``,
+    ``error`` (:func:`describe_error` of a failed trial) and ``params_<name>`` per searched parameter."""
     rows = []
     for trial in trials:
         duration = (
@@ -647,6 +701,7 @@ def write_trials_csv(trials: list[FrozenTrial], names: list[str], path: Path) ->
             "last_step": trial.last_step,
             "datetime_start": None if trial.datetime_start is None else trial.datetime_start.isoformat(),
             "duration_s": duration,
+            "error": trial.user_attrs.get(ERROR_ATTR),
         }
         rows.append(row | {f"params_{name}": trial.params.get(name) for name in names})
     write_csv_atomically(path, rows)
