@@ -35,6 +35,8 @@ class SACHGRNPolicy(GraphPolicy):
     Other parameters: see :class:`~sb3_hgrn.common.policies.GraphPolicy`.
     """
 
+    network_arguments = ("actor_kwargs", "critic_kwargs")
+
     def __init__(
         self,
         observation_space: spaces.Dict,
