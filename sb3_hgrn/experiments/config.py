@@ -298,9 +298,20 @@ class RunConfig:
 
 
 def check_params(preset: str, params: dict[str, Any]) -> None:
-    """Raise :class:`ConfigError` for algorithm arguments that preset's class does not take, and for
-    numbers, flags and ``policy_kwargs`` of a wrong type (see
+    """Raise :class:`ConfigError` for algorithm arguments that preset's class does not take (see
+    :func:`check_param_names`), and for numbers, flags and ``policy_kwargs`` of a wrong type (see
     :func:`~sb3_hgrn.common.off_policy.check_model_arguments`)."""
+    check_param_names(preset, params)
+    algorithm = PRESETS[preset][0]
+    try:
+        check_model_arguments(algorithm, params)
+    except TypeError as error:
+        raise ConfigError(f"{algorithm.__name__} (preset {preset!r}): {error}") from error
+
+
+def check_param_names(preset: str, params: dict[str, Any]) -> None:
+    """Raise :class:`ConfigError` for algorithm arguments that preset's class does not take or that the
+    runner sets itself."""
     algorithm = PRESETS[preset][0]
     accepted = set(inspect.signature(algorithm.__init__).parameters) - {"self"}
     for key in params:
@@ -311,10 +322,6 @@ def check_params(preset: str, params: dict[str, Any]) -> None:
                 f"{algorithm.__name__} (preset {preset!r}) takes no argument {key!r}; "
                 f"its arguments: {', '.join(sorted(accepted - RESERVED_PARAMS))}."
             )
-    try:
-        check_model_arguments(algorithm, params)
-    except TypeError as error:
-        raise ConfigError(f"{algorithm.__name__} (preset {preset!r}): {error}") from error
 
 
 def resolve_config(

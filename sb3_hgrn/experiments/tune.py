@@ -49,7 +49,7 @@ from sb3_hgrn.common.policies import policy_parameters
 from sb3_hgrn.experiments.config import (
     ConfigError,
     RunConfig,
-    check_params,
+    check_param_names,
     check_preset_name,
     env_folder_name,
     nest,
@@ -183,7 +183,7 @@ def check_search_space(preset: str, space: dict[str, BaseDistribution], where: s
             raise ConfigError(f"{where}: malformed parameter name {name!r}.")
         nested = merge(nested, nest(name, None))
     try:
-        check_params(preset, nested)
+        check_param_names(preset, nested)
     except ConfigError as error:
         raise ConfigError(f"{where}: {error}") from error
     accepted = policy_arguments(preset)
