@@ -195,6 +195,10 @@ def test_parse_assignments():
             parse_assignments(bad)
 
 
+CI_TRAIN = ["train", "--budget", "ci", "--env", "surviving_v0"]
+"""A train command that, were a bad argument let through, would train only the ci budget."""
+
+
 @pytest.mark.parametrize(
     "args, message",
     [
@@ -212,6 +216,26 @@ def test_parse_assignments():
             "Cannot build preset",
         ),
         (["train", "--env", "surviving_v0", "--preset", "dqn", "--env-param", "n_agnts=3"], "Cannot build"),
+        (
+            [*CI_TRAIN, "--preset", "dqn", "--param", "policy_kwargs.hidden_dim=abc"],
+            "policy_kwargs.hidden_dim must be an integer, got 'abc'",
+        ),
+        (
+            [*CI_TRAIN, "--preset", "dqn", "--param", "policy_kwargs.recurrent=2"],
+            "policy_kwargs.recurrent must be true or false, got 2",
+        ),
+        (
+            [*CI_TRAIN, "--preset", "soft_hgrn", "--param", "hidden_dtype=float8"],
+            "hidden_dtype must name a numpy float dtype",
+        ),
+        (
+            [*CI_TRAIN, "--preset", "soft_hgrn", "--param", "learning_starts=abc"],
+            "learning_starts must be an integer, got 'abc'",
+        ),
+        (
+            [*CI_TRAIN, "--preset", "soft_hgrn", "--env-param", "n_agents=abc"],
+            "n_agents must be an integer in 1..1024",
+        ),
         (["reproduce", "table1", "--budget", "ci", "--envs", "nope_v0"], "Unknown env 'nope_v0'"),
         (["reproduce", "table1", "--budget", "nope"], "Unknown budget 'nope'"),
         (["evaluate", "/nonexistent/run"], "No run folder or model file"),
@@ -222,6 +246,35 @@ def test_bad_input_gives_clear_errors(args, message, tmp_path, capsys):
         main([*args, "--folder", str(tmp_path)] if args[0] != "evaluate" else args)
     assert error.value.code == 2
     assert message in capsys.readouterr().err
+
+
+def test_a_sweep_refuses_a_wrongly_typed_grid_value_before_training(tmp_path, capsys):
+    with pytest.raises(SystemExit) as error:
+        main(["sweep", "--env", "surviving_v0", "--budget", "ci", "--presets", "dqn", "--seeds", "1",
+              "--timesteps", "50", "--grid", "policy_kwargs.n_heads=2,x",
+              "--folder", str(tmp_path)])  # fmt: skip
+    assert error.value.code == 2
+    assert "policy_kwargs.n_heads must be an integer, got 'x'" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
+
+
+def test_a_config_file_with_a_wrongly_typed_argument_names_the_argument(tmp_path, capsys):
+    config = tmp_path / "mine.yml"
+    config.write_text("default:\n  policy_kwargs:\n    hidden_dim: wide\n")
+    with pytest.raises(SystemExit) as error:
+        main(["train", "--env", "surviving_v0", "--preset", "dqn", "--budget", "ci", "--config", str(config),
+              "--folder", str(tmp_path)])  # fmt: skip
+    assert error.value.code == 2
+    assert "policy_kwargs.hidden_dim must be an integer, got 'wide'" in capsys.readouterr().err
+    assert not (tmp_path / "surviving_v0").exists()
+
+
+@pytest.mark.parametrize("command", ["evaluate", "render"])
+def test_evaluate_and_render_name_a_bad_env_param(surviving_run, command, capsys):
+    with pytest.raises(SystemExit) as error:
+        main([command, str(surviving_run), "--env-param", "n_agents=0"])
+    assert error.value.code == 2
+    assert "n_agents must be an integer in 1..1024" in capsys.readouterr().err
 
 
 def test_configs_define_every_budget_and_build_every_preset():

@@ -25,7 +25,7 @@ from stable_baselines3.common.save_util import load_from_pkl, save_to_pkl
 from sb3_hgrn import SACHGRN, SoftHGRN, evaluate_graph_policy, make_graph_vec_env
 from sb3_hgrn.cli import main
 from sb3_hgrn.common import controllers
-from sb3_hgrn.common.checks import observation_problem
+from sb3_hgrn.common.checks import MAX_ABS_REWARD, observation_problem
 from sb3_hgrn.common.evaluation import RandomGraphPolicy
 from sb3_hgrn.common.files import DamagedModelFileError, save_model_atomically, write_text_atomically
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
@@ -515,6 +515,60 @@ def test_bad_algorithm_arguments_raise_naming_the_argument(algorithm, small_env,
         algorithm("GraphPolicy", small_env, **{"batch_size": 32, **kwargs})
 
 
+ANY_POLICY = r"\w+HGRNPolicy"
+WRONG_TYPES = [
+    ({"hidden_dtype": "float8"}, r"hidden_dtype must name a numpy float dtype .*, got 'float8'"),
+    ({"hidden_dtype": "int8"}, r"hidden_dtype must name a numpy float dtype .*, got 'int8'"),
+    ({"learning_starts": "abc"}, "learning_starts must be an integer, got 'abc'"),
+    ({"learning_starts": 1e3}, "learning_starts must be an integer, got 1000.0"),
+    ({"tau": "1"}, "tau must be a number, got '1'"),
+    ({"learn_alpha": "no"}, "learn_alpha must be true or false, got 'no'"),
+    ({"exploration_final_eps": "x"}, "exploration_final_eps must be a number or None, got 'x'"),
+    (
+        {"policy_kwargs": {"hidden_dtype": "float16"}},
+        f"policy_kwargs.hidden_dtype is not an argument of {ANY_POLICY}; .* hidden_dtype is an argument "
+        r"of \w+HGRN itself",
+    ),
+    ({"policy_kwargs": {"hidden_dim": "abc"}}, "policy_kwargs.hidden_dim must be an integer, got 'abc'"),
+    ({"policy_kwargs": {"hidden_dim": 32.0}}, "policy_kwargs.hidden_dim must be an integer, got 32.0"),
+    ({"policy_kwargs": {"n_heads": "2"}}, "policy_kwargs.n_heads must be an integer, got '2'"),
+    ({"policy_kwargs": {"head_dim": 1.5}}, "policy_kwargs.head_dim must be an integer or None, got 1.5"),
+    ({"policy_kwargs": {"recurrent": "no"}}, "policy_kwargs.recurrent must be true or false, got 'no'"),
+    ({"policy_kwargs": {"mixed_precision": 1}}, "policy_kwargs.mixed_precision must be true or false"),
+    ({"policy_kwargs": {"communication": 3}}, r"communication must be one of \(.*\), got 3"),
+]
+
+
+@pytest.mark.parametrize("kwargs, message", WRONG_TYPES)
+@pytest.mark.parametrize("algorithm", [SoftHGRN, SACHGRN])
+def test_arguments_of_a_wrong_type_raise_naming_the_argument(algorithm, small_env, kwargs, message):
+    with pytest.raises((TypeError, ValueError), match=message):
+        algorithm("GraphPolicy", small_env, **{"batch_size": 32, **kwargs})
+
+
+@pytest.mark.parametrize(
+    "algorithm, policy_kwargs, message",
+    [
+        (SoftHGRN, {"average_tau": "0.1"}, "policy_kwargs.average_tau must be a number or None, got '0.1'"),
+        (SACHGRN, {"n_critics": 2.0}, "policy_kwargs.n_critics must be an integer, got 2.0"),
+        (SACHGRN, {"tempered_actor": "yes"}, "policy_kwargs.tempered_actor must be true or false"),
+        (
+            SACHGRN,
+            {"actor_kwargs": {"hidden_dim": "x"}},
+            "policy_kwargs.actor_kwargs.hidden_dim must be an integer, got 'x'",
+        ),
+        (
+            SACHGRN,
+            {"critic_kwargs": {"n_critics": 2}},
+            "policy_kwargs.critic_kwargs.n_critics is not a network option; the network options: ",
+        ),
+    ],
+)
+def test_policy_arguments_of_each_algorithm_are_checked(algorithm, small_env, policy_kwargs, message):
+    with pytest.raises(TypeError, match=message):
+        algorithm("GraphPolicy", small_env, batch_size=32, policy_kwargs=policy_kwargs)
+
+
 def test_good_algorithm_arguments_pass(small_env):
     model = SoftHGRN("GraphPolicy", small_env, learning_rate=lambda progress: 1e-3 * progress, gamma=1,
                      buffer_size=160, batch_size=32, train_freq=(1, "episode"))  # fmt: skip
@@ -690,6 +744,30 @@ def test_evaluate_on_nan_rewards_raises_naming_the_agent_and_step():
         evaluate_graph_policy(RandomGraphPolicy(env, seed=0), env, n_eval_episodes=1)
 
 
+@pytest.mark.parametrize("reward", [3e38, -2e12])
+@pytest.mark.parametrize("algorithm", [SoftHGRN, SACHGRN])
+def test_an_extreme_reward_while_learning_names_the_agent_and_the_bound(algorithm, reward):
+    env = make_graph_vec_env(lambda: DictOnlyEnv(reward=reward / 2), n_envs=1)
+    model = algorithm("GraphPolicy", env, batch_size=4, learning_starts=0, seed=0)
+    with pytest.raises(ValueError, match=r"rewards beyond the bound \|reward\| <= 1e\+12: .* for agent \d"):
+        model.learn(60)
+
+
+def test_evaluate_refuses_an_extreme_reward():
+    env = make_graph_vec_env(lambda: DictOnlyEnv(reward=1e13))
+    with pytest.raises(ValueError, match=r"rewards beyond the bound .* at step 1 of the evaluation"):
+        evaluate_graph_policy(RandomGraphPolicy(env, seed=0), env, n_eval_episodes=1)
+
+
+def test_rewards_at_the_bound_train_to_finite_parameters():
+    """Actions 0..2 earn 0, 5e11 or 1e12 (the largest reward allowed) per agent-step."""
+    env = make_graph_vec_env(lambda: DictOnlyEnv(reward=MAX_ABS_REWARD / 2), n_envs=2)
+    model = SoftHGRN("GraphPolicy", env, batch_size=4, learning_starts=12, train_freq=1, seed=0)
+    model.learn(300)
+    assert model._n_updates > 40
+    assert all(th.isfinite(parameter).all() for parameter in model.policy.parameters())
+
+
 @pytest.mark.parametrize(
     "policy, error, message",
     [
@@ -729,6 +807,55 @@ def test_predict_states_the_expected_shapes_of_state_and_episode_start(predictin
         model.predict(observation, state=state, episode_start=np.ones(4, dtype=bool))
     actions, _ = model.predict(observation, state=state, episode_start=np.zeros(6, dtype=bool))
     assert actions.shape == (6,)
+
+
+NOT_A_GRAPH_BATCH = [
+    (lambda obs: "hello", TypeError, r"observation must be a dict .*'obs' and 'neighbors'.*, got a str"),
+    (lambda obs: obs["obs"], TypeError, r"observation must be a dict .*, got an array of shape \(6, 2\)"),
+    (lambda obs: {"obs": obs["obs"]}, ValueError, "observation lacks the key 'neighbors'"),
+    (
+        lambda obs: {**obs, "obs": obs["obs"].astype(str)},
+        TypeError,
+        r"observation\['obs'\] must hold numbers, got dtype <U",
+    ),
+    (
+        lambda obs: {**obs, "neighbors": obs["neighbors"].astype(str)},
+        TypeError,
+        r"observation\['neighbors'\] must hold numbers, got dtype <U",
+    ),
+    (
+        lambda obs: {**obs, "obs": obs["obs"][:, :1]},
+        ValueError,
+        r"observation\['obs'\] has shape \(6, 1\), expected \(n_slots, 2\)",
+    ),
+    (
+        lambda obs: {**obs, "neighbors": obs["neighbors"][:, 0]},
+        ValueError,
+        r"observation\['neighbors'\] has shape \(6,\), expected \(6, 3\)",
+    ),
+]
+
+
+@pytest.mark.parametrize("make, error, message", NOT_A_GRAPH_BATCH)
+def test_predict_refuses_what_is_no_graph_batch_saying_what_it_expects(predicting, make, error, message):
+    model, observation = predicting
+    with pytest.raises(error, match=message):
+        model.predict(make(observation))
+
+
+def test_predict_refuses_a_state_that_is_not_finite_numbers(predicting):
+    model, observation = predicting
+    _, (hidden,) = model.predict(observation)
+    bad = hidden.copy()
+    bad[0, 4, 3] = np.nan
+    with pytest.raises(
+        ValueError, match=r"state\[0\] holds the non-finite value nan for agent 1 of env copy 1 \(slot 4\)"
+    ):
+        model.predict(observation, state=(bad,))
+    with pytest.raises(TypeError, match=r"state\[0\] must hold numbers, got dtype <U"):
+        model.predict(observation, state=(hidden.astype(str),))
+    with pytest.raises(TypeError, match=r"episode_start must hold booleans \(or 0 and 1\), got dtype <U"):
+        model.predict(observation, state=(hidden,), episode_start=np.array(["a"] * 6))
 
 
 def test_infinite_observations_are_refused_in_an_unbounded_space():

@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 from pettingzoo.test import parallel_api_test
 
+from sb3_hgrn import make_graph_vec_env
 from sb3_hgrn.envs import surviving_v0
 from sb3_hgrn.envs.graph import grid_neighbors
 from sb3_hgrn.envs.surviving_v0 import SurvivingEnv
@@ -329,6 +330,21 @@ def test_neighbors_use_chebyshev_comm_range():
 def test_invalid_arguments_raise(kwargs):
     with pytest.raises(ValueError):
         surviving_v0.parallel_env(**kwargs)
+
+
+@pytest.mark.parametrize("n_agents", [0, 1025, 2.5, "4"])
+def test_the_agent_count_rule_is_stated_once(n_agents):
+    """The env and the graph VecEnv built on it state the same valid range."""
+    message = f"n_agents must be an integer in 1..1024 .*, got {n_agents!r}"
+    with pytest.raises(ValueError, match=message):
+        surviving_v0.parallel_env(n_agents=n_agents)
+    with pytest.raises(ValueError, match=message):
+        make_graph_vec_env("surviving_v0", env_kwargs={"n_agents": n_agents})
+
+
+def test_one_agent_is_a_graph_env_of_its_own():
+    env = make_graph_vec_env("surviving_v0", n_envs=2, env_kwargs={"n_agents": 1, "map_size": 12})
+    assert env.reset()["neighbors"].tolist() == [[0] + [-1] * (env.max_neighbors - 1)] * 2
 
 
 def test_invalid_actions_raise():

@@ -413,6 +413,12 @@ def test_invalid_arguments_raise(kwargs):
         uav_mbs_v0.parallel_env(**kwargs)
 
 
+@pytest.mark.parametrize("n_uavs", [0, 1025, 2.0])
+def test_the_uav_count_is_an_integer_in_its_range(n_uavs):
+    with pytest.raises(ValueError, match=f"n_uavs must be an integer in 1..1024 .*, got {n_uavs!r}"):
+        uav_mbs_v0.parallel_env(n_uavs=n_uavs)
+
+
 def test_invalid_actions_raise():
     env = hand_env()
     env.reset_arrays(seed=0)

@@ -9,7 +9,7 @@ import random
 import sys
 import time
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from typing import Any
 
 import numpy as np
@@ -26,6 +26,7 @@ from stable_baselines3.common.utils import (
 )
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_hgrn.common.arguments import argument_hints, check_argument_types, is_integer, is_number
 from sb3_hgrn.common.buffers import GraphReplayBuffer, GraphSamples
 from sb3_hgrn.common.checks import check_rewards
 from sb3_hgrn.common.files import (
@@ -37,7 +38,7 @@ from sb3_hgrn.common.files import (
     saved_policy_module,
 )
 from sb3_hgrn.common.hgrn import HGRN
-from sb3_hgrn.common.policies import GraphPolicy, check_graph_spaces
+from sb3_hgrn.common.policies import GraphPolicy, check_graph_spaces, check_policy_kwargs
 from sb3_hgrn.common.safe_load import add_plain_record, read_saved_pickle, saved_entries, write_zip
 from sb3_hgrn.common.temperature import TemperatureController, group_means, target_entropy
 from sb3_hgrn.common.vec_env import make_graph_vec_env
@@ -108,14 +109,6 @@ def unroll(network: HGRN, steps: list[GraphSamples], graphs: list, state: th.Ten
     return th.cat(outputs)
 
 
-def _is_integer(value: Any) -> bool:
-    return isinstance(value, int | np.integer) and not isinstance(value, bool)
-
-
-def _is_number(value: Any) -> bool:
-    return isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool)
-
-
 def check_algorithm_arguments(
     learning_rate: Any,
     buffer_size: Any,
@@ -134,35 +127,65 @@ def check_algorithm_arguments(
     (vec-steps, or ``(n, unit)``) and ``buffer_size`` an integer of agent-transitions that holds at
     least one batch of graphs (``batch_size * n_agents``, when the env and so ``n_agents`` is known).
     """
-    if not callable(learning_rate) and not (_is_number(learning_rate) and learning_rate > 0):
+    if not callable(learning_rate) and not (is_number(learning_rate) and learning_rate > 0):
         raise ValueError(
             f"learning_rate must be a positive number or a schedule (callable), got {learning_rate!r}."
         )
-    if not _is_integer(batch_size) or batch_size < 1:
+    if not is_integer(batch_size) or batch_size < 1:
         raise ValueError(
             f"batch_size must be a positive integer (graphs per gradient step), got {batch_size!r}."
         )
-    if not _is_number(gamma) or not 0 <= gamma <= 1:
+    if not is_number(gamma) or not 0 <= gamma <= 1:
         raise ValueError(f"gamma must be a number in [0, 1], got {gamma!r}.")
-    if not _is_integer(n_steps) or n_steps < 1:
+    if not is_integer(n_steps) or n_steps < 1:
         raise ValueError(f"n_steps must be a positive integer (steps per return), got {n_steps!r}.")
-    if not _is_integer(sequence_length) or sequence_length < 1 or batch_size % sequence_length:
+    if not is_integer(sequence_length) or sequence_length < 1 or batch_size % sequence_length:
         raise ValueError(
             f"sequence_length must be a positive integer that divides batch_size={batch_size} (a batch is "
             f"batch_size // sequence_length runs of sequence_length steps), got {sequence_length!r}."
         )
     frequency = train_freq[0] if isinstance(train_freq, tuple | list) and train_freq else train_freq
-    if not _is_integer(frequency) or frequency < 1:
+    if not is_integer(frequency) or frequency < 1:
         raise ValueError(
             f"train_freq must be an integer >= 1 (or a tuple (n >= 1, unit)), got {train_freq!r}."
         )
-    if not _is_integer(buffer_size) or buffer_size < 1:
+    if not is_integer(buffer_size) or buffer_size < 1:
         raise ValueError(f"buffer_size must be a positive integer (agent-transitions), got {buffer_size!r}.")
     if n_agents is not None and buffer_size < batch_size * n_agents:
         raise ValueError(
             f"buffer_size must hold at least one batch of graphs: batch_size * n_agents = {batch_size} * "
             f"{n_agents} = {batch_size * n_agents} agent-transitions, got {buffer_size}."
         )
+
+
+def check_hidden_dtype(hidden_dtype: Any) -> None:
+    """Raise a ``TypeError`` unless ``hidden_dtype`` names a numpy float dtype (the replay buffer's
+    storage of recurrent states)."""
+    try:
+        kind = np.dtype(hidden_dtype).kind
+    except TypeError:
+        kind = None
+    if kind != "f":
+        raise TypeError(
+            "hidden_dtype must name a numpy float dtype for the recurrent states in the replay buffer "
+            f"(float16, float32 or float64), got {hidden_dtype!r}."
+        )
+
+
+def check_model_arguments(algorithm: type[GraphOffPolicyAlgorithm], arguments: Mapping[str, Any]) -> None:
+    """Raise a ``TypeError`` naming the argument unless the numbers and flags among ``algorithm``'s
+    ``arguments`` and their ``policy_kwargs`` have their annotated types (see
+    :mod:`sb3_hgrn.common.arguments`), ``hidden_dtype`` names a float dtype and every entry of
+    ``policy_kwargs`` is an argument of the policy (:func:`~sb3_hgrn.common.policies.check_policy_kwargs`).
+
+    :param arguments: keyword arguments of ``algorithm`` by name (any subset of them).
+    """
+    check_argument_types(argument_hints(algorithm.__init__), arguments)
+    if "hidden_dtype" in arguments:
+        check_hidden_dtype(arguments["hidden_dtype"])
+    policy = arguments.get("policy", "GraphPolicy")
+    policy_class = algorithm.policy_aliases[policy] if isinstance(policy, str) else policy
+    check_policy_kwargs(policy_class, arguments.get("policy_kwargs") or {}, algorithm.__init__)
 
 
 def check_policy(policy: Any, aliases: dict[str, type]) -> None:
@@ -262,6 +285,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         seed: int | None,
         device: th.device | str,
     ):
+        arguments = dict(locals())
         check_policy(policy, self.policy_aliases)
         if env is not None:
             env = check_graph_env(env)
@@ -275,6 +299,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
             n_steps,
             sequence_length,
         )
+        check_model_arguments(type(self), arguments)
         if exploration_initial_eps is None:
             exploration_initial_eps = 0.0 if stochastic else 1.0
         if exploration_final_eps is None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 import numpy as np
@@ -11,8 +12,9 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
+from sb3_hgrn.common.arguments import argument_hints, check_argument_types, is_number, named_parameters
 from sb3_hgrn.common.averaging import polyak_average
-from sb3_hgrn.common.checks import observation_problem, slot_name
+from sb3_hgrn.common.checks import check_graph_batch, check_state, observation_problem, slot_name
 from sb3_hgrn.common.hgrn import HGRN, GraphBatch
 from sb3_hgrn.common.temperature import EntropyTemperature
 
@@ -33,6 +35,59 @@ def check_graph_spaces(observation_space: spaces.Space, action_space: spaces.Spa
         raise TypeError(f"Graph policies need a Discrete action space, got {action_space}.")
     if ("group" in observation_space.spaces) != ("action_mask" in observation_space.spaces):
         raise TypeError("A graph observation space with agent groups needs both 'group' and 'action_mask'.")
+
+
+NETWORK_OPTIONS = (
+    "hidden_dim", "n_heads", "head_dim", "communication", "recurrent", "mixed_precision",
+    "features_extractor_class", "features_extractor_kwargs",
+)  # fmt: skip
+"""The arguments of :class:`GraphPolicy` that shape its networks (:meth:`GraphPolicy.make_network`)."""
+SPACE_ARGUMENTS = ("observation_space", "action_space", "lr_schedule")
+"""The arguments of a policy that the algorithm gives, never ``policy_kwargs``."""
+
+
+def policy_parameters(policy_class: type[GraphPolicy]) -> list[str]:
+    """The arguments a graph policy class takes in ``policy_kwargs``: its own and those of its bases
+    down to :class:`GraphPolicy`."""
+    bases = policy_class.__mro__[: policy_class.__mro__.index(GraphPolicy) + 1]
+    names = [name for cls in bases for name in named_parameters(cls.__init__)]
+    return [name for name in dict.fromkeys(names) if name not in SPACE_ARGUMENTS]
+
+
+def check_policy_kwargs(
+    policy_class: type[GraphPolicy], policy_kwargs: dict[str, Any], algorithm: Callable[..., Any]
+) -> None:
+    """Raise a ``TypeError`` naming the argument unless every entry of ``policy_kwargs`` is an argument
+    of ``policy_class`` with a value of its annotated type (for numbers and flags, see
+    :mod:`sb3_hgrn.common.arguments`), and every entry of its :attr:`GraphPolicy.network_arguments`
+    a network option of such a value.
+
+    :param algorithm: the algorithm's constructor, to say when a misplaced key is its argument.
+    """
+    accepted = policy_parameters(policy_class)
+    for key in policy_kwargs:
+        if key not in accepted:
+            hint = (
+                f"; {key} is an argument of {algorithm.__qualname__.split('.')[0]} itself"
+                if key in named_parameters(algorithm)
+                else ""
+            )
+            raise TypeError(
+                f"policy_kwargs.{key} is not an argument of {policy_class.__name__}; its arguments: "
+                f"{', '.join(accepted)}{hint}."
+            )
+    bases = policy_class.__mro__[: policy_class.__mro__.index(GraphPolicy) + 1]
+    hints = {name: kinds for cls in reversed(bases) for name, kinds in argument_hints(cls.__init__).items()}
+    check_argument_types(hints, policy_kwargs, "policy_kwargs.")
+    for name in policy_class.network_arguments:
+        options = policy_kwargs.get(name) or {}
+        for key in options:
+            if key not in NETWORK_OPTIONS:
+                raise TypeError(
+                    f"policy_kwargs.{name}.{key} is not a network option; the network options: "
+                    f"{', '.join(NETWORK_OPTIONS)}."
+                )
+        check_argument_types(hints, options, f"policy_kwargs.{name}.")
 
 
 class GraphPolicy(BasePolicy):
@@ -76,6 +131,10 @@ class GraphPolicy(BasePolicy):
     acting_network_name: ClassVar[str]
     """Attribute name of the network that chooses the actions (its average is ``<name>_average``)."""
 
+    network_arguments: tuple[str, ...] = ()
+    """Arguments of a subclass that hold :data:`NETWORK_OPTIONS` overriding the policy's for some of its
+    networks (checked by :func:`check_policy_kwargs`)."""
+
     def __init__(
         self,
         observation_space: spaces.Dict,
@@ -105,23 +164,11 @@ class GraphPolicy(BasePolicy):
             optimizer_kwargs=optimizer_kwargs,
             normalize_images=False,
         )
-        if average_tau is not None and not (
-            isinstance(average_tau, int | float)
-            and not isinstance(average_tau, bool)
-            and 0 < average_tau <= 1
-        ):
+        if average_tau is not None and not (is_number(average_tau) and 0 < average_tau <= 1):
             raise ValueError(f"average_tau must be a number in (0, 1] or None, got {average_tau!r}.")
         self.average_tau = average_tau
-        self.network_kwargs = dict(
-            hidden_dim=hidden_dim,
-            n_heads=n_heads,
-            head_dim=head_dim,
-            communication=communication,
-            recurrent=recurrent,
-            mixed_precision=mixed_precision,
-            features_extractor_class=features_extractor_class,
-            features_extractor_kwargs=features_extractor_kwargs,
-        )
+        arguments = locals()
+        self.network_kwargs = {name: arguments[name] for name in NETWORK_OPTIONS}
         if ("group" in observation_space.spaces) != (group_n_actions is not None):
             raise ValueError(
                 "group_n_actions must be given exactly when the observations carry agent groups; build "
@@ -298,18 +345,17 @@ class GraphPolicy(BasePolicy):
         :param episode_start: ``(n_slots,)``, true where ``observation`` is the first of an episode
             (its state is reset to zero).
         :return: actions ``(n_slots,)`` and the new state ``(hidden,)``.
-        :raises ValueError: naming the slot for a NaN, infinite or out-of-space observation or a bad
-            neighbour index (checked on the numpy arrays), and stating the expected shapes for a
-            ``state`` or ``episode_start`` that does not fit the batch.
+        :raises TypeError: for an ``observation`` that is no dict of arrays of numbers, a ``state`` or
+            ``episode_start`` that holds no numbers.
+        :raises ValueError: naming the slot for a NaN, infinite or out-of-space observation, a bad
+            neighbour index or a NaN or infinite state (checked on the numpy arrays), and stating the
+            expected keys and shapes for an ``observation``, ``state`` or ``episode_start`` that does not
+            fit the batch.
         """
         self.set_training_mode(False)
-        obs_tensor, vectorized = self.obs_to_tensor(observation)
-        if not vectorized:
-            raise ValueError(
-                "predict() takes the observations of all slots of a graph VecEnv (a batch), not the "
-                "observation of a single agent."
-            )
+        check_graph_batch(observation, self.observation_space)
         self._check_observations(observation)
+        obs_tensor, _ = self.obs_to_tensor(observation)
         hidden = self._initial_state(state, episode_start, obs_tensor["obs"].shape[0])
         with th.no_grad():
             actions, new_hidden = self.act(
@@ -354,11 +400,17 @@ class GraphPolicy(BasePolicy):
                     f"this batch of {n_slots} slots."
                 )
             hidden = hidden[0]
+            check_state(hidden, self.n_agents)
         if episode_start is not None:
             starts = np.asarray(episode_start)
             if starts.shape != (n_slots,):
                 raise ValueError(
                     f"episode_start has shape {starts.shape}, expected ({n_slots},): one flag per slot."
                 )
+            if starts.dtype.kind not in "biuf":
+                raise TypeError(f"episode_start must hold booleans (or 0 and 1), got dtype {starts.dtype}.")
+            flags = np.isin(starts, (0, 1))
+            if not flags.all():
+                raise ValueError(f"episode_start must hold booleans (or 0 and 1), got {starts[~flags][0]}.")
             hidden = hidden * (1.0 - starts.astype(np.float32))[:, None]
         return hidden

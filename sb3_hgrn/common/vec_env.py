@@ -269,8 +269,8 @@ class GraphVecEnv(VecEnv):
                 )
             if not np.array_equal(env.group_ids, first.group_ids):
                 raise ValueError("All env copies must have the same agent groups.")
-        if self.n_agents < 2:
-            raise ValueError(f"A graph env needs at least two agents, got {self.n_agents}.")
+        if self.n_agents < 1:
+            raise ValueError(f"A graph env needs at least one agent; {type(first).__name__} has none.")
         obs_space = first.shared_observation_space
         if not isinstance(obs_space, gym.spaces.Box) or len(obs_space.shape) == 0:
             raise TypeError(

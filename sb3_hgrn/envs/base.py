@@ -26,6 +26,14 @@ class AgentGroup(NamedTuple):
     action_space: gym.spaces.Discrete
 
 
+def check_agent_count(name: str, count: Any, maximum: int, why: str) -> None:
+    """Raise a ``ValueError`` unless ``count`` is an integer in ``1..maximum``: the rule for the agent
+    count of every env (one agent makes a graph of its own; ``why`` says where the maximum comes from).
+    """
+    if isinstance(count, bool) or not isinstance(count, int | np.integer) or not 1 <= count <= maximum:
+        raise ValueError(f"{name} must be an integer in 1..{maximum} ({why}), got {count!r}.")
+
+
 def binary_table(n_values: int, n_bits: int, dtype: np.dtype = np.int8) -> np.ndarray:
     """``(n_values, n_bits)``: row ``v`` is ``v`` in binary, most significant bit first (the
     position and index codes of the envs' observations)."""

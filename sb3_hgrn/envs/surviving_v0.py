@@ -11,7 +11,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from sb3_hgrn.envs.base import GraphParallelEnv, binary_table
+from sb3_hgrn.envs.base import GraphParallelEnv, binary_table, check_agent_count
 from sb3_hgrn.envs.graph import grid_neighbors
 
 N_ACTIONS = 5
@@ -391,8 +391,7 @@ def _check_arguments(
     """Raise ``ValueError`` for constructor arguments outside their valid ranges."""
     if not 1 <= id_bits <= MAX_ID_BITS:
         raise ValueError(f"id_bits must lie in 1..{MAX_ID_BITS}, got {id_bits}.")
-    if not 1 <= n_agents <= 2**id_bits:
-        raise ValueError(f"n_agents must lie in 1..2**id_bits = {2**id_bits}, got {n_agents}.")
+    check_agent_count("n_agents", n_agents, 2**id_bits, f"2**id_bits, the agent index is {id_bits} bits wide")
     if map_size < 4:
         raise ValueError(f"map_size must be >= 4 (a wall ring around at least 2 x 2 cells), got {map_size}.")
     if max_cycles < 1:

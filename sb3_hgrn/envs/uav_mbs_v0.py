@@ -11,7 +11,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from sb3_hgrn.envs.base import GraphParallelEnv, binary_table
+from sb3_hgrn.envs.base import GraphParallelEnv, binary_table, check_agent_count
 from sb3_hgrn.envs.graph import grid_neighbors
 
 # Space and discretisation: positions in [0, 1]^2 map to cells int(p * 200 + 13), clipped to [13, 212],
@@ -581,10 +581,7 @@ def _check_arguments(
     max_neighbors: int,
 ) -> None:
     """Raise ``ValueError`` for constructor arguments outside their valid ranges."""
-    if not 1 <= n_uavs <= 2**ID_BITS:
-        raise ValueError(
-            f"n_uavs must lie in 1..{2**ID_BITS} (the index bits are {ID_BITS} wide), got {n_uavs}."
-        )
+    check_agent_count("n_uavs", n_uavs, 2**ID_BITS, f"the index bits are {ID_BITS} wide")
     if n_users < 1:
         raise ValueError(f"n_users must be >= 1, got {n_users}.")
     if not 1 <= n_clusters <= n_users:

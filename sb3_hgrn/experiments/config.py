@@ -49,6 +49,7 @@ from typing import Any
 
 import yaml
 
+from sb3_hgrn.common.off_policy import check_model_arguments
 from sb3_hgrn.common.vec_env import REGISTERED_ENVS
 from sb3_hgrn.presets import PRESETS, merge
 
@@ -312,7 +313,20 @@ class RunConfig:
 
 
 def check_params(preset: str, params: dict[str, Any]) -> None:
-    """Raise :class:`ConfigError` for algorithm arguments that preset's class does not take."""
+    """Raise :class:`ConfigError` for algorithm arguments that preset's class does not take (see
+    :func:`check_param_names`), and for numbers, flags and ``policy_kwargs`` of a wrong type (see
+    :func:`~sb3_hgrn.common.off_policy.check_model_arguments`)."""
+    check_param_names(preset, params)
+    algorithm = PRESETS[preset][0]
+    try:
+        check_model_arguments(algorithm, params)
+    except TypeError as error:
+        raise ConfigError(f"{algorithm.__name__} (preset {preset!r}): {error}") from error
+
+
+def check_param_names(preset: str, params: dict[str, Any]) -> None:
+    """Raise :class:`ConfigError` for algorithm arguments that preset's class does not take or that the
+    runner sets itself."""
     algorithm = PRESETS[preset][0]
     accepted = set(inspect.signature(algorithm.__init__).parameters) - {"self"}
     for key in params:

@@ -23,7 +23,6 @@ on several machines): a second ``tune`` with the same storage and study name joi
 
 from __future__ import annotations
 
-import inspect
 import os
 import time
 import warnings
@@ -47,13 +46,14 @@ from optuna.trial import FrozenTrial, Trial, TrialState
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_hgrn.common.arguments import is_number
 from sb3_hgrn.common.evaluation import evaluate_graph_policy
 from sb3_hgrn.common.files import atomic_write, write_csv_atomically, write_text_atomically
-from sb3_hgrn.common.policies import GraphPolicy
+from sb3_hgrn.common.policies import policy_parameters
 from sb3_hgrn.experiments.config import (
     ConfigError,
     RunConfig,
-    check_params,
+    check_param_names,
     check_preset_name,
     env_folder_name,
     nest,
@@ -132,7 +132,7 @@ def parse_distribution(name: str, spec: Any, where: str) -> BaseDistribution:
             ):
                 raise ValueError("choices must be numbers, strings, booleans or null")
             return CategoricalDistribution(choices)
-        if not all(_is_number(spec[key]) for key in keys if key != "log"):
+        if not all(is_number(spec[key]) for key in keys if key != "log"):
             raise ValueError(f"{', '.join(sorted(keys - {'log'}))} must be numbers")
         if kind == "int":
             if not all(isinstance(spec[key], int) for key in keys if key != "log"):
@@ -147,10 +147,6 @@ def parse_distribution(name: str, spec: Any, where: str) -> BaseDistribution:
         )
     except ValueError as error:
         raise ConfigError(f"{where}: bad distribution for {name}: {str(error).rstrip('.')}.") from error
-
-
-def _is_number(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 def load_search_space(preset: str, path: str | os.PathLike | None = None) -> dict[str, BaseDistribution]:
@@ -191,10 +187,7 @@ def load_search_space(preset: str, path: str | os.PathLike | None = None) -> dic
 
 def policy_arguments(preset: str) -> set[str]:
     """The ``policy_kwargs`` the preset's policy class takes (its own and those of its graph bases)."""
-    policy = PRESETS[preset][0].policy_aliases["GraphPolicy"]
-    bases = policy.__mro__[: policy.__mro__.index(GraphPolicy) + 1]
-    names = {name for cls in bases for name in inspect.signature(cls.__init__).parameters}
-    return names - {"self", "observation_space", "action_space", "lr_schedule", "kwargs"}
+    return set(policy_parameters(PRESETS[preset][0].policy_aliases["GraphPolicy"]))
 
 
 def check_search_space(preset: str, space: dict[str, BaseDistribution], where: str) -> None:
@@ -206,7 +199,7 @@ def check_search_space(preset: str, space: dict[str, BaseDistribution], where: s
             raise ConfigError(f"{where}: malformed parameter name {name!r}.")
         nested = merge(nested, nest(name, None))
     try:
-        check_params(preset, nested)
+        check_param_names(preset, nested)
     except ConfigError as error:
         raise ConfigError(f"{where}: {error}") from error
     accepted = policy_arguments(preset)

@@ -39,6 +39,7 @@ class SACHGRNPolicy(GraphPolicy):
     """
 
     acting_network_name = "actor"
+    network_arguments = ("actor_kwargs", "critic_kwargs")
 
     def __init__(
         self,
