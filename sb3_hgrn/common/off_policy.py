@@ -346,12 +346,12 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         """Attach another graph VecEnv (any number of copies or agents, the same spaces); the env is
         reset before training when its graphs differ in size."""
         env = check_graph_env(env)
+        check_for_correct_spaces(env, self.observation_space, self.action_space)
         if env_action_counts(env) != self.policy.action_counts:
             raise ValueError(
                 f"The env's agent groups have {env_action_counts(env)} actions, the model's "
                 f"{self.policy.action_counts}."
             )
-        check_for_correct_spaces(env, self.observation_space, self.action_space)
         resized = env.num_envs != self.n_envs or env.n_agents != self.n_agents
         self.n_envs = env.num_envs  # SB3 asserts an unchanged slot count; graphs may change size
         super().set_env(env, force_reset=force_reset or resized)
@@ -381,12 +381,18 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         """SB3's ``load``; a damaged zip (cut short, not a zip, unreadable contents) raises
         :class:`~sb3_hgrn.common.files.DamagedModelFileError`, a ``ValueError`` naming the file.
 
+        A given ``env`` keeps its own seeds: the model is loaded without it (SB3 would reseed it with
+        the model's seed) and then attached with :meth:`set_env`.
+
         Like any SB3 zip, a model file can run code when loaded: load only files from a trusted source.
         """
         if isinstance(path, str | os.PathLike):
             check_model_file(path)
             cls._check_saved_algorithm(path)
-        return super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
+        model = super().load(path, None, device, custom_objects, print_system_info, force_reset, **kwargs)
+        if env is not None:
+            model.set_env(env, force_reset=force_reset)
+        return model
 
     @classmethod
     def _check_saved_algorithm(cls, path: str | os.PathLike) -> None:
