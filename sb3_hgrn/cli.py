@@ -465,10 +465,9 @@ def _evaluate(args: argparse.Namespace) -> int:
         online=args.online,
         **parse_assignments(args.env_param, "--env-param"),
     )
-    mode = "greedy" if args.deterministic else "sampled"
     print(
         f"team return {results['mean']:.2f} +- {results['std']:.2f} over {results['n_episodes']} episodes "
-        f"({mode} actions, epsilon {args.epsilon:g})"
+        f"({results['actions']} actions, epsilon {args.epsilon:g})"
     )
     if args.actions:
         used = [

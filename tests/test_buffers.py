@@ -1,8 +1,14 @@
+import re
+import sys
+import warnings
+from types import SimpleNamespace
+
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
 
+from sb3_hgrn.common import buffers
 from sb3_hgrn.common.buffers import GraphReplayBuffer, smallest_index_dtype
 
 N_AGENTS, N_COPIES, STATE = 3, 2, 4
@@ -169,11 +175,11 @@ def test_expected_bytes_count_the_full_buffer_without_allocating_it():
     arguments = (buffer.observation_space, buffer.action_space, N_AGENTS * N_COPIES, N_AGENTS, STATE)
     # per agent-transition: obs and next obs 2 x 2 int8, neighbours 2 x 2 int8, action 1, reward 4,
     # terminated 1, alive 1, state 4 float32; and one episode-start flag per copy and step
-    assert GraphReplayBuffer.expected_bytes(5 * 6, *arguments, "float32") == 5 * 6 * 31 + 5 * 2
-    assert GraphReplayBuffer.expected_bytes(5 * 6, *arguments, "float32") == buffer.nbytes
+    assert GraphReplayBuffer.expected_nbytes(5 * 6, *arguments, "float32") == 5 * 6 * 31 + 5 * 2
+    assert GraphReplayBuffer.expected_nbytes(5 * 6, *arguments, "float32") == buffer.nbytes
     grouped = gym.spaces.Dict({**buffer.observation_space.spaces, "group": gym.spaces.Discrete(2)})
-    assert GraphReplayBuffer.expected_bytes(5 * 6, grouped, *arguments[1:], "float32") == buffer.nbytes + 30
-    huge = GraphReplayBuffer.expected_bytes(10**12, *arguments)  # a terabyte, never allocated
+    assert GraphReplayBuffer.expected_nbytes(5 * 6, grouped, *arguments[1:], "float32") == buffer.nbytes + 30
+    huge = GraphReplayBuffer.expected_nbytes(10**12, *arguments)  # a terabyte, never allocated
     assert huge == 10**12 // 6 * 6 * (31 - 8) + 10**12 // 6 * 2  # the state in float16
 
 
@@ -201,3 +207,67 @@ def test_warns_when_the_full_buffer_would_not_fit_in_memory():
         GraphReplayBuffer(
             int(rows_needed * 2), space, gym.spaces.Discrete(3), device="cpu", n_envs=2, n_agents=2
         )
+
+
+def view_space(view: tuple[int, ...], dtype=np.float32, groups: bool = False) -> gym.spaces.Dict:
+    """A graph VecEnv's observation space with image-like views of shape ``view``."""
+    spaces = {
+        "obs": gym.spaces.Box(0, 1, shape=view, dtype=dtype),
+        "neighbors": gym.spaces.Box(-1, 2**31 - 1, shape=(5,), dtype=np.int32),
+    }
+    if groups:
+        spaces["group"] = gym.spaces.Box(0, 1, shape=(), dtype=np.int8)
+    return gym.spaces.Dict(spaces)
+
+
+@pytest.mark.parametrize(
+    "space, n_actions, n_agents, hidden_dtype",
+    [
+        (view_space((9, 9, 5)), 5, 3, "float16"),
+        (view_space((2,), np.int8, groups=True), 7, 3, "float32"),
+        (view_space((3, 4), np.uint8), 300, 130, "float16"),  # int64 actions, int16 neighbour indices
+    ],
+)
+def test_expected_bytes_are_the_bytes_the_buffer_holds(space, n_actions, n_agents, hidden_dtype):
+    for buffer_size, n_copies in [(40 * n_agents, 2), (1, 1)]:  # also the 2-step minimum
+        arguments = (buffer_size, space, gym.spaces.Discrete(n_actions), n_copies * n_agents, n_agents, 6)
+        buffer = GraphReplayBuffer(*arguments[:3], "cpu", *arguments[3:], hidden_dtype=hidden_dtype)
+        assert GraphReplayBuffer.expected_nbytes(*arguments, hidden_dtype=hidden_dtype) == buffer.nbytes
+
+
+def test_warns_with_the_expected_bytes_before_allocating(monkeypatch):
+    """A laptop with 6 GiB available: the 1M default on 9x9x5 float32 views (3.15 GiB once full)
+    is warned about, before any array is made, with a buffer_size that stays under half of it."""
+    monkeypatch.setattr(buffers, "available_memory", lambda: 6 * 2**30)
+    space, actions = view_space((9, 9, 5)), gym.spaces.Discrete(5)
+    expected = GraphReplayBuffer.expected_nbytes(1_000_000, space, actions, 20, 20, 64)
+    assert 3 * 2**30 < expected < 4 * 2**30
+
+    def no_allocation(*args, **kwargs):
+        raise AssertionError("an array was made before the warning")
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        with monkeypatch.context() as patch, pytest.raises(UserWarning) as warned:
+            patch.setattr(buffers.np, "zeros", no_allocation)
+            GraphReplayBuffer(1_000_000, space, actions, "cpu", n_envs=20, n_agents=20, state_dim=64)
+        message = str(warned.value)
+        assert f"buffer_size=1000000 agent-transitions will take {expected} bytes" in message
+        assert "more than 3.00 GiB of the 6.0 GiB of memory available; lower buffer_size" in message
+        fitting = int(re.search(r"\(buffer_size=(\d+) would", message).group(1))
+        fitting_bytes = GraphReplayBuffer.expected_nbytes(fitting, space, actions, 20, 20, 64)
+        assert 2.99 * 2**30 < fitting_bytes <= 3 * 2**30
+        buffers.warn_if_too_large(fitting_bytes, fitting)  # no warning: it would raise here
+
+
+def test_memory_limit_comes_from_psutil_else_a_fixed_size(monkeypatch):
+    monkeypatch.setitem(
+        sys.modules, "psutil", SimpleNamespace(virtual_memory=lambda: SimpleNamespace(available=6))
+    )
+    assert buffers.available_memory() == 6
+    monkeypatch.setattr(buffers, "available_memory", lambda: None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        buffers.warn_if_too_large(2 * 2**30, 10)
+    with pytest.warns(UserWarning, match="more than 2.00 GiB; lower buffer_size"):
+        buffers.warn_if_too_large(2 * 2**30 + 1, 10)

@@ -379,3 +379,27 @@ def test_evaluate_online_acts_with_the_online_network_of_an_averaging_model(surv
     assert by_network[False] != by_network[True]
     with pytest.raises(ConfigError, match="--online needs a model that deploys an averaged network"):
         evaluate_run(surviving_run, n_episodes=1, online=True)
+
+
+def test_evaluation_names_the_action_rule_it_used(surviving_run, tmp_path, capsys):
+    """Greedy for DQN-style presets and deterministic flags, sampled for stochastic policies: in what
+    ``evaluate`` prints and in ``eval.json``."""
+    args = ["train", "--env", "surviving_v0", "--preset", "dqn", "--seed", "3", "--folder", str(tmp_path)]
+    args += [*TOY, "--timesteps", "200", "--param", "batch_size=4", "--env-param", "n_agents=5"]
+    assert main(args) == 0
+    dqn_run = tmp_path / "surviving_v0" / "dqn" / "seed_3"
+    dqn_results = json.loads((dqn_run / "eval.json").read_text())
+    assert dqn_results["actions"] == "greedy" and dqn_results["deterministic"] is True
+    assert dqn_results["epsilon_evaluations"]["0.3"]["actions"] == "greedy"
+    soft_results = json.loads((surviving_run / "eval.json").read_text())
+    assert soft_results["actions"] == "sampled" and soft_results["deterministic"] is False
+    capsys.readouterr()
+    for run, flags, rule in [
+        (dqn_run, [], "greedy"),
+        (surviving_run, [], "sampled"),
+        (surviving_run, ["--deterministic"], "greedy"),
+    ]:
+        assert main(["evaluate", str(run), "--episodes", "1", "--threads", "1", *flags]) == 0
+        assert f"({rule} actions, epsilon 0)" in capsys.readouterr().out
+    env = make_graph_vec_env("surviving_v0", n_envs=1, seed=0, env_kwargs={"n_agents": 5, "max_cycles": 20})
+    assert evaluate_model(RandomGraphPolicy(env, seed=0), env, 1, True)["actions"] == "uniform random"

@@ -159,6 +159,29 @@ def test_only_the_learners_are_the_envs_agents():
 
 
 @pytest.mark.parametrize(
+    "learners, rows",
+    [("b_", [-1, -1, -1, 0, 1, 2]), (["b_0", "a_1"], [-1, 0, -1, 1, -1, -1]), ("a_", [0, 1, 2, -1, -1, -1])],
+)
+def test_learner_rows_of_maps_inner_indices_to_the_wrappers_agents(learners, rows):
+    """The learners listed second (or interleaved) in the inner env's possible_agents: an inner index
+    (an engine's agent id where it indexes possible_agents) maps to the learner's row here."""
+    inner = TwoTeams()
+    env = DrivenAgents(inner, learners=learners)
+    np.testing.assert_array_equal(env.learner_rows_of(np.arange(6)), rows)
+    for row, agent in enumerate(env.possible_agents):
+        assert env.learner_rows_of([inner.possible_agents.index(agent)]).tolist() == [row]
+    assert env.learner_rows_of([]).shape == (0,) and env.learner_rows_of(np.array([], dtype=int)).shape == (
+        0,
+    )
+    with pytest.raises(ValueError, match=r"inner_indices must be integers in \[0, 6\).*got \[6\]"):
+        env.learner_rows_of([6])
+    with pytest.raises(ValueError, match=r"inner_indices must be integers in \[0, 6\).*got \[-1\]"):
+        env.learner_rows_of(np.array([-1]))
+    with pytest.raises(ValueError, match=r"inner_indices must be integers .*got \[1.5\]"):
+        env.learner_rows_of([1.5])
+
+
+@pytest.mark.parametrize(
     "learners", [["a_0", "a_1", "a_2"], ("a_2", "a_0", "a_1"), "a_", lambda name: name < "b"]
 )
 def test_learners_as_names_prefix_or_predicate(learners):

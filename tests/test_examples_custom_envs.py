@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from sb3_hgrn import make_graph_vec_env
+from tests.doc_snippets import python_block, run_snippet
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
@@ -56,6 +57,25 @@ def test_battle_red_learns_with_a_graph_of_its_nearest_mates_and_counts_both_sid
     for policy in ("random", "soft_hgrn"):
         (episode,) = episodes[policy]
         assert episode["l"] == 20 and 0 <= episode["blue_left"] <= n_red and 0 <= episode["red_left"] <= n_red
+
+
+def test_battle_blue_learns_with_the_engine_ids_mapped_to_the_wrappers_rows():
+    """The custom_envs.md block where blue, listed second in battle's possible_agents, learns: row
+    ``k`` of its cells is the engine's cell of ``blue_k``, and the graph is among blue mates."""
+    pytest.importorskip("magent2")
+    snippet = run_snippet(python_block("custom_envs.md", "def make_blue_env"))
+    env = snippet["make_blue_env"](map_size=18, max_cycles=10)
+    for seed in (0, 1):
+        env.reset(seed=seed)
+        env.step({agent: seed for agent in env.agents})
+        battle, grid, (_, blue) = env.unwrapped, env.unwrapped.env, env.unwrapped.handles
+        assert env.possible_agents == [f"blue_{k}" for k in range(6)] and battle.possible_agents[0] == "red_0"
+        cell_of_id = dict(zip(grid.get_agent_id(blue).tolist(), grid.get_pos(blue).tolist(), strict=True))
+        expected = np.array(
+            [cell_of_id[battle.possible_agents.index(agent)] for agent in env.possible_agents]
+        )
+        np.testing.assert_array_equal(snippet["blue_cells"](env.env), expected)
+        assert_nearest_first(env.neighbors(), expected, k=4)
 
 
 def test_spread_agents_list_their_nearest_mates_and_report_the_landmarks_covered(tmp_path):

@@ -8,8 +8,16 @@ import torch as th
 from stable_baselines3.common.callbacks import CheckpointCallback, EvalCallback
 from stable_baselines3.common.vec_env import DummyVecEnv
 
-from sb3_hgrn import GraphEvalCallback, SoftHGRN, evaluate_graph_policy, make_graph_vec_env
+from sb3_hgrn import (
+    SACHGRN,
+    GraphEvalCallback,
+    RandomGraphPolicy,
+    SoftHGRN,
+    evaluate_graph_policy,
+    make_graph_vec_env,
+)
 from sb3_hgrn.soft_hgrn.soft_hgrn import soft_value
+from tests.doc_snippets import docstring_example, python_block, run_snippet
 from tests.toy_envs import DictOnlyEnv, NeighborBitEnv
 from tests.toy_envs import bit_vec_env as bit_env
 
@@ -257,3 +265,32 @@ def test_average_tau_deploys_a_polyak_average_and_collects_with_the_online_netwo
         th.testing.assert_close(a, b)
     with pytest.raises(ValueError, match="average_tau"):
         quick_model(env, policy_kwargs={**SMALL, "average_tau": 0.0})
+
+
+@pytest.mark.parametrize("algorithm", [SoftHGRN, SACHGRN])
+def test_load_keeps_the_seeds_of_the_env_it_is_given(tmp_path, algorithm):
+    """Evaluation envs seeded differently give different numbers after ``load``, each the numbers of
+    the same env evaluated without the load (the model's own seed does not replace the env's)."""
+    model = algorithm("GraphPolicy", bit_env(n_envs=2), learning_starts=64, batch_size=8,
+                      policy_kwargs=SMALL, seed=0)  # fmt: skip
+    model.save(tmp_path / "model.zip")
+
+    def returns(env_seed: int, load: bool) -> list[float]:
+        env = bit_env(n_envs=2, seed=env_seed)
+        evaluated = algorithm.load(tmp_path / "model.zip", env=env) if load else model
+        result, _ = evaluate_graph_policy(evaluated, env, 8, deterministic=True, return_episode_rewards=True)
+        return result
+
+    assert returns(1, load=True) != returns(2, load=True)
+    assert returns(1, load=True) == returns(1, load=False)
+    assert returns(2, load=True) == returns(2, load=False)
+
+
+def test_random_graph_policy_examples_run_as_documented():
+    """The example of docs/usage.md (an env of three agent groups, actions within each agent's group)
+    and the one of the class docstring run, and give what they say."""
+    usage = run_snippet(python_block("usage.md", "RandomGraphPolicy(env, seed=0)"))
+    assert usage["actions"].shape == (usage["env"].num_envs,) and usage["actions"].dtype == np.int64
+    assert usage["state"] is None and np.isfinite(usage["mean_return"])
+    docstring = run_snippet("from sb3_hgrn import *\n" + docstring_example(RandomGraphPolicy.__doc__))
+    assert docstring["actions"].shape == (docstring["env"].num_envs,) and np.isfinite(docstring["std_return"])

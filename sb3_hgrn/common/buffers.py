@@ -43,7 +43,14 @@ def smallest_index_dtype(n_agents: int) -> np.dtype:
 
 
 def available_memory() -> int | None:
-    """Bytes of memory available to new allocations (Linux ``MemAvailable``), or None if unknown."""
+    """Bytes of memory available to new allocations (psutil's ``virtual_memory().available`` where
+    psutil is installed, else Linux's ``MemAvailable``), or None if unknown."""
+    try:
+        import psutil
+    except ImportError:
+        pass
+    else:
+        return int(psutil.virtual_memory().available)
     try:
         with open("/proc/meminfo") as meminfo:
             for line in meminfo:
@@ -52,6 +59,33 @@ def available_memory() -> int | None:
     except OSError:
         return None
     return None
+
+
+MEMORY_WARNING_FRACTION = 0.5
+"""A replay buffer expected to take more than this fraction of the available memory is warned about."""
+MEMORY_WARNING_BYTES = 2 * 2**30
+"""The bytes above which a replay buffer is warned about where the available memory is unknown."""
+
+
+def warn_if_too_large(expected_bytes: int, buffer_size: int) -> None:
+    """Warn (``UserWarning``) when a replay buffer of ``buffer_size`` agent-transitions is expected to
+    take ``expected_bytes`` once full, more than :data:`MEMORY_WARNING_FRACTION` of the available
+    memory (or :data:`MEMORY_WARNING_BYTES` where that is unknown); the warning states the bytes and
+    a ``buffer_size`` that would stay under that limit."""
+    available = available_memory()
+    limit = MEMORY_WARNING_BYTES if available is None else int(MEMORY_WARNING_FRACTION * available)
+    if expected_bytes <= limit:
+        return
+    where = "" if available is None else f" of the {available / 2**30:.1f} GiB of memory available"
+    fitting = int(buffer_size * limit / expected_bytes)
+    warnings.warn(
+        f"The replay buffer of buffer_size={buffer_size} agent-transitions will take "
+        f"{expected_bytes} bytes ({expected_bytes / 2**30:.2f} GiB) once full, more than "
+        f"{limit / 2**30:.2f} GiB{where}; lower buffer_size (buffer_size={fitting} would take about "
+        f"{limit / 2**30:.2f} GiB) or store smaller observations.",
+        UserWarning,
+        stacklevel=3,
+    )
 
 
 class GraphReplayBuffer(BaseBuffer):
@@ -90,7 +124,23 @@ class GraphReplayBuffer(BaseBuffer):
     :param hidden_dtype: storage dtype of the recurrent state.
     :param n_steps: steps summed per sample (1: one-step transitions).
     :param gamma: discount of the summed rewards and of the bootstrap.
+
+    The bytes the buffer will hold once full (:meth:`expected_nbytes`, from :meth:`storage_layout`)
+    are checked before its arrays are made: above half of the available memory (2 GiB where that is
+    unknown) a ``UserWarning`` states them and a ``buffer_size`` that would fit.
     """
+
+    observations: np.ndarray  # (steps, n_copies, n_agents, *obs_shape), the env's dtype
+    next_observations: np.ndarray  # as observations
+    neighbors: np.ndarray  # (steps, n_copies, n_agents, max_neighbors), the smallest index dtype
+    next_neighbors: np.ndarray  # as neighbors
+    actions: np.ndarray  # (steps, n_copies, n_agents) uint8 (int64 above 256 actions)
+    rewards: np.ndarray  # (steps, n_copies, n_agents) float32
+    terminated: np.ndarray  # (steps, n_copies, n_agents) bool
+    alive: np.ndarray  # (steps, n_copies, n_agents) bool
+    hidden: np.ndarray  # (steps, n_copies, n_agents, state_dim) hidden_dtype
+    episode_starts: np.ndarray  # (steps, n_copies) bool
+    groups: np.ndarray | None  # (steps, n_copies, n_agents) int8 with agent groups, else None
 
     def __init__(
         self,
@@ -110,48 +160,48 @@ class GraphReplayBuffer(BaseBuffer):
             raise ValueError(f"n_envs={n_envs} is not a multiple of n_agents={n_agents}.")
         self.n_steps = n_steps
         self.gamma = gamma
-        self.buffer_size = max(buffer_size // n_envs, 2)
         self.n_agents = n_agents
         self.n_copies = n_envs // n_agents
         layout = self.storage_layout(
             buffer_size, observation_space, action_space, n_envs, n_agents, state_dim, hidden_dtype
         )
+        warn_if_too_large(self.layout_nbytes(layout), buffer_size)
+        self.buffer_size = self.steps_held(buffer_size, n_envs)
+        self.groups = None
         # np.zeros maps untouched pages lazily (zeros_like would write every byte up front)
         for name, (shape, dtype) in layout.items():
             setattr(self, name, np.zeros(shape, dtype=dtype))
-        if "groups" not in layout:
-            self.groups = None
-        available = available_memory()
-        if available is not None and self.nbytes > available:
-            warnings.warn(
-                f"The replay buffer needs {self.nbytes / 2**30:.1f} GiB once full but only "
-                f"{available / 2**30:.1f} GiB of memory are available; lower buffer_size.",
-                stacklevel=2,
-            )
+
+    @staticmethod
+    def steps_held(buffer_size: int, n_envs: int) -> int:
+        """Steps of all ``n_envs`` slots that ``buffer_size`` agent-transitions hold (at least 2)."""
+        return max(buffer_size // n_envs, 2)
 
     @staticmethod
     def storage_layout(
         buffer_size: int,
         observation_space: spaces.Dict,
         action_space: spaces.Discrete,
-        n_envs: int,
-        n_agents: int,
-        state_dim: int,
+        n_envs: int = 1,
+        n_agents: int = 1,
+        state_dim: int = 0,
         hidden_dtype: np.dtype | str = np.float16,
     ) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
-        """Shape and dtype of every storage array of a buffer of these arguments (those of the
-        constructor), rows ``(steps, n_copies, n_agents)``: ``observations`` and
-        ``next_observations`` ``(*rows, *obs_shape)``, ``neighbors`` and ``next_neighbors`` ``(*rows,
-        max_neighbors)``, ``actions``, ``rewards``, ``terminated``, ``alive`` ``rows``, ``hidden``
-        ``(*rows, state_dim)``, ``episode_starts`` ``(steps, n_copies)`` and, with agent groups,
-        ``groups`` ``rows``."""
-        rows = (max(buffer_size // n_envs, 2), n_envs // n_agents, n_agents)
+        """Shape and dtype of every storage array of a buffer built with these arguments: rows of
+        ``(steps, n_copies, n_agents)`` with ``steps = max(buffer_size // n_envs, 2)``, the
+        observations and next observations ``(*rows, *obs_shape)`` in the env's dtype, the neighbour
+        lists ``(*rows, max_neighbors)`` in the smallest index dtype, actions (uint8 up to 256
+        actions, else int64), rewards float32, terminations and who was alive bool, the recurrent
+        state ``(*rows, state_dim)`` in ``hidden_dtype``, episode starts ``(steps, n_copies)`` and,
+        with agent groups, the group ids int8."""
+        rows = (GraphReplayBuffer.steps_held(buffer_size, n_envs), n_envs // n_agents, n_agents)
         obs_space = observation_space["obs"]
         index_dtype = smallest_index_dtype(n_agents)
         neighbors = (*rows, observation_space["neighbors"].shape[0])
+        observations = (*rows, *obs_space.shape)
         layout = {
-            "observations": ((*rows, *obs_space.shape), obs_space.dtype),
-            "next_observations": ((*rows, *obs_space.shape), obs_space.dtype),
+            "observations": (observations, np.dtype(obs_space.dtype)),
+            "next_observations": (observations, np.dtype(obs_space.dtype)),
             "neighbors": (neighbors, index_dtype),
             "next_neighbors": (neighbors, index_dtype),
             "actions": (rows, np.dtype(np.uint8 if action_space.n <= 256 else np.int64)),
@@ -165,23 +215,28 @@ class GraphReplayBuffer(BaseBuffer):
             layout["groups"] = (rows, np.dtype(np.int8))
         return layout
 
+    @staticmethod
+    def layout_nbytes(layout: dict[str, tuple[tuple[int, ...], np.dtype]]) -> int:
+        """Bytes of the arrays of a :meth:`storage_layout`."""
+        return sum(int(np.prod(shape)) * dtype.itemsize for shape, dtype in layout.values())
+
     @classmethod
-    def expected_bytes(
+    def expected_nbytes(
         cls,
         buffer_size: int,
         observation_space: spaces.Dict,
         action_space: spaces.Discrete,
-        n_envs: int,
-        n_agents: int,
-        state_dim: int,
+        n_envs: int = 1,
+        n_agents: int = 1,
+        state_dim: int = 0,
         hidden_dtype: np.dtype | str = np.float16,
     ) -> int:
-        """Bytes a buffer of these arguments (those of the constructor) holds once full, without
-        allocating it: :attr:`nbytes` of such a buffer."""
-        layout = cls.storage_layout(
-            buffer_size, observation_space, action_space, n_envs, n_agents, state_dim, hidden_dtype
+        """Bytes a buffer built with these arguments holds (its :attr:`nbytes`), without building it."""
+        return cls.layout_nbytes(
+            cls.storage_layout(
+                buffer_size, observation_space, action_space, n_envs, n_agents, state_dim, hidden_dtype
+            )
         )
-        return sum(int(np.prod(shape)) * dtype.itemsize for shape, dtype in layout.values())
 
     @property
     def nbytes(self) -> int:

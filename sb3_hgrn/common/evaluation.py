@@ -16,10 +16,18 @@ from sb3_hgrn.common.off_policy import check_graph_env
 
 class RandomGraphPolicy:
     """Uniformly random actions for every slot of a graph VecEnv, within each agent's own group's
-    actions (the baseline the examples and benchmarks compare with).
+    actions (the baseline the examples and benchmarks compare with). It is called as a model is,
+    ``actions, state = policy.predict(obs)``, so it goes wherever a model goes in an evaluation::
 
-    :param env: the graph VecEnv it acts in.
-    :param seed: seed of its own random generator.
+        env = make_graph_vec_env("surviving_v0", n_envs=2, seed=0)
+        policy = RandomGraphPolicy(env, seed=0)
+        actions, _ = policy.predict(env.reset())  # (env.num_envs,) int64
+        mean_return, std_return = evaluate_graph_policy(policy, env, n_eval_episodes=2)
+
+    :param env: the graph VecEnv it acts in (its ``action_space.n`` actions; with several agent
+        groups the padded count of the largest group).
+    :param seed: seed of its own random generator (``None``: fresh entropy); the env's seed is
+        separate.
     """
 
     def __init__(self, env: VecEnv, seed: int | None = None):
@@ -33,7 +41,17 @@ class RandomGraphPolicy:
         episode_start: np.ndarray | None = None,
         deterministic: bool = False,
     ) -> tuple[np.ndarray, Any]:
-        """Random actions ``(n_slots,)`` (the same signature as a model's ``predict``)."""
+        """Random actions, with the same signature as a model's ``predict``.
+
+        :param observation: a graph VecEnv's observation dict: ``"obs"`` ``(n_slots, *obs_shape)``
+            (only its length is read) and, on envs with several agent groups, ``"action_mask"``
+            ``(n_slots, n_actions)`` whose ones are the first actions of each slot (its group's).
+        :param state: returned unchanged (the policy has no recurrent state).
+        :param episode_start: ignored ``(n_slots,)``.
+        :param deterministic: ignored: the actions are random either way.
+        :return: ``(actions, state)``: ``actions`` ``(n_slots,)`` int64, each drawn uniformly from
+            ``0 .. n_actions - 1``, or from the slot's ``action_mask.sum()`` valid actions.
+        """
         mask = observation.get("action_mask")
         high = self.n_actions if mask is None else mask.sum(axis=1)
         return self.rng.integers(0, high, size=len(observation["obs"])), state

@@ -427,12 +427,12 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         """Attach another graph VecEnv (any number of copies or agents, the same spaces); the env is
         reset before training when its graphs differ in size."""
         env = check_graph_env(env)
+        check_for_correct_spaces(env, self.observation_space, self.action_space)
         if env_action_counts(env) != self.policy.action_counts:
             raise ValueError(
                 f"The env's agent groups have {env_action_counts(env)} actions, the model's "
                 f"{self.policy.action_counts}."
             )
-        check_for_correct_spaces(env, self.observation_space, self.action_space)
         resized = env.num_envs != self.n_envs or env.n_agents != self.n_agents
         self.n_envs = env.num_envs  # SB3 asserts an unchanged slot count; graphs may change size
         super().set_env(env, force_reset=force_reset or resized)
@@ -493,6 +493,9 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
             zip, unreadable contents), naming the file.
         :raises ~sb3_hgrn.common.files.ModelFileError: for a zip of another library's algorithm.
         :raises ValueError: for a zip of another sb3_hgrn algorithm, naming the class to load it with.
+
+        A given ``env`` keeps its own seeds: the model is loaded without it (SB3 would reseed it with
+        the model's seed) and then attached with :meth:`set_env`.
         """
         if isinstance(path, str | os.PathLike):
             source, name = check_model_file(path), os.fspath(path)
@@ -502,7 +505,10 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         if not trust_pickle:
             given = custom_objects or {}
             custom_objects = {**saved_entries(source, name, cls._loadable_classes(), skip=given), **given}
-        return super().load(source, env, device, custom_objects, print_system_info, force_reset, **kwargs)
+        model = super().load(source, None, device, custom_objects, print_system_info, force_reset, **kwargs)
+        if env is not None:
+            model.set_env(env, force_reset=force_reset)
+        return model
 
     @classmethod
     def _loadable_classes(cls) -> list[type]:

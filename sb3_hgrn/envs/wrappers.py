@@ -291,6 +291,8 @@ class DrivenAgents(ParallelEnv):
         self.render_mode = getattr(self.env, "render_mode", None)
         self._inner_index = {agent: i for i, agent in enumerate(inner_agents)}
         self._learner_rows = np.flatnonzero(is_learner)
+        self._row_of_inner = np.full(len(inner_agents), -1, dtype=np.int64)
+        self._row_of_inner[self._learner_rows] = np.arange(len(self._learner_rows))
         self._learner_set = frozenset(self.possible_agents)
         self._observation_spaces = {
             agent: self.env.observation_space(agent) for agent in self.possible_agents
@@ -347,6 +349,30 @@ class DrivenAgents(ParallelEnv):
             ) from None
         self.agents = [self.possible_agents[i] for i in np.flatnonzero(present[self._learner_rows])]
         self._side.update(observations, present)
+
+    def learner_rows_of(self, inner_indices: Any) -> np.ndarray:
+        """Rows in this env's ``possible_agents`` of the inner env's agents at ``inner_indices``.
+
+        For engines that number agents by their index in the inner env's ``possible_agents`` (as
+        MAgent2's ``get_agent_id`` does: red, then blue), where the learners need not come first.
+
+        :param inner_indices: ``(n,)`` integer positions in the inner env's ``possible_agents``.
+        :return: ``(n,)`` int64: each agent's row in this env's ``possible_agents`` (the learners in
+            the inner order), ``-1`` for a driven agent.
+        :raises ValueError: for an index that is not an integer in ``[0, len(inner possible_agents))``.
+        """
+        indices = np.asarray(inner_indices)
+        if indices.size == 0:
+            return np.zeros(indices.shape, dtype=np.int64)
+        n_inner = len(self._row_of_inner)
+        integral = indices.dtype.kind in "iu"
+        if not integral or indices.min() < 0 or indices.max() >= n_inner:
+            wrong = indices[(indices < 0) | (indices >= n_inner)] if integral else indices
+            raise ValueError(
+                f"inner_indices must be integers in [0, {n_inner}) (positions in the inner env's "
+                f"possible_agents), got {wrong.ravel()[:PREVIEW].tolist()}."
+            )
+        return self._row_of_inner[indices]
 
     @staticmethod
     def _of_learners(values: dict, agents: list[str]) -> dict:

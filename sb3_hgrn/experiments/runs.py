@@ -351,7 +351,7 @@ def new_model(
 
 def replay_buffer_bytes(config: RunConfig) -> int:
     """Bytes the replay buffer of a run of ``config`` holds once full
-    (:meth:`~sb3_hgrn.common.buffers.GraphReplayBuffer.expected_bytes`), without allocating it: a model
+    (:meth:`~sb3_hgrn.common.buffers.GraphReplayBuffer.expected_nbytes`), without allocating it: a model
     is built on one env copy, with a buffer of one batch, for the spaces and the recurrent-state width."""
     env = make_env(config, 1, config.seed)
     try:
@@ -368,7 +368,7 @@ def replay_buffer_bytes(config: RunConfig) -> int:
         )
     finally:
         env.close()
-    return GraphReplayBuffer.expected_bytes(
+    return GraphReplayBuffer.expected_nbytes(
         buffer_size,
         model.observation_space,
         model.action_space,
@@ -725,20 +725,40 @@ class ActionCounter(PolicyWrapper):
         return (self.counts / max(1, int(self.counts.sum()))).tolist()
 
 
+def action_rule(model: Any, deterministic: bool) -> str:
+    """How ``model.predict(..., deterministic=deterministic)`` picks its actions, before any
+    :class:`PolicyWrapper` (such as :class:`EpsilonRandomPolicy`) changes them: ``"uniform random"``
+    for a :class:`RandomGraphPolicy`, ``"greedy"`` with ``deterministic`` or for a graph model with
+    ``stochastic=False`` (the DQN-style presets and the ``-S`` variants), ``"sampled"`` for a
+    stochastic graph model, else ``"predict(deterministic=False)"`` (a model this cannot tell)."""
+    while isinstance(model, PolicyWrapper):
+        model = model.model
+    if isinstance(model, RandomGraphPolicy):
+        return "uniform random"
+    stochastic = getattr(getattr(model, "policy", None), "stochastic", None)
+    if deterministic or stochastic is False:
+        return "greedy"
+    return "sampled" if stochastic else "predict(deterministic=False)"
+
+
 def evaluate_model(model: Any, env: GraphVecEnv, n_episodes: int, deterministic: bool) -> dict[str, Any]:
-    """Team-return figures of ``n_episodes`` episodes: mean, std, per-episode returns and lengths, and
-    the fraction of agent-steps that took each action (over every step the evaluation ran)."""
+    """Team-return figures of ``n_episodes`` episodes: mean, std, per-episode returns and lengths, the
+    fraction of agent-steps that took each action (over every step the evaluation ran), the action
+    rule used (``actions``, see :func:`action_rule`; ``deterministic`` says whether it is greedy) and
+    the probability ``epsilon`` of a random action mixed in."""
     counter = ActionCounter(model, int(env.action_space.n))
     returns, lengths = evaluate_graph_policy(
         counter, env, n_eval_episodes=n_episodes, deterministic=deterministic, return_episode_rewards=True
     )
+    rule = action_rule(model, deterministic)
     return {
         "mean": float(np.mean(returns)),
         "std": float(np.std(returns)),
         "returns": [float(r) for r in returns],
         "lengths": [int(n) for n in lengths],
         "n_episodes": len(returns),
-        "deterministic": bool(deterministic),
+        "actions": rule,
+        "deterministic": rule == "greedy",
         "epsilon": float(getattr(model, "epsilon", 0.0)),
         "action_frequencies": counter.frequencies(),
     }
