@@ -1,7 +1,8 @@
 """Train Soft-HGRN on PettingZoo's Knights Archers Zombies: archers and knights hold off zombies together.
 
 Needs PettingZoo's butterfly envs (pygame; installed with the extra dependencies: pip install -e ".[extra]").
-The env-specific code is player_positions, players_left and make_env; docs/custom_envs.md walks through it.
+The env-specific code is player_positions, players_left, within_space and make_env; docs/custom_envs.md
+walks through it.
 Default (4 archers and 4 knights, vector observations, episodes of at most 300 steps):
     python examples/kaz_pettingzoo.py
 """
@@ -13,6 +14,7 @@ import time
 from collections.abc import Sequence
 
 import numpy as np
+import supersuit
 from pettingzoo.butterfly import knights_archers_zombies_v11
 
 from sb3_hgrn import (
@@ -38,12 +40,18 @@ def players_left(env):
     return {"players_left": len(env.unwrapped.player_list)}
 
 
+def within_space(obs, space):
+    """``obs`` clipped to ``space``: a relative position can pass the declared [-1, 1] by a pixel."""
+    return np.clip(obs, space.low, space.high)
+
+
 def make_env(archers: int = 4, knights: int = 4, max_zombies: int = 10, max_cycles: int = 300, k: int = 3):
     """The players see everything as vectors (one row per player, weapon and zombie) and list their
     ``k`` nearest fellow players."""
     kaz = knights_archers_zombies_v11.parallel_env(
         num_archers=archers, num_knights=knights, max_zombies=max_zombies, max_cycles=max_cycles
     )
+    kaz = supersuit.observation_lambda_v0(kaz, within_space)
     return TeamFigures(GraphFromPositions(kaz, player_positions, k=k), players_left)
 
 
@@ -66,7 +74,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, list[dict]]:
     parser.add_argument("--knights", type=int, default=4)
     parser.add_argument("--max-cycles", type=int, default=300, help="steps per episode at most")
     parser.add_argument("--copies", type=int, default=4, help="env copies stepped together")
-    parser.add_argument("--timesteps", type=int, default=200_000, help="agent-steps of training")
+    parser.add_argument("--timesteps", type=int, default=150_000, help="agent-steps of training")
     parser.add_argument("--learning-starts", type=int, default=10_000, help="agent-steps before training")
     parser.add_argument("--eval-episodes", type=int, default=20, help="team episodes per evaluation")
     parser.add_argument("--seed", type=int, default=0)
