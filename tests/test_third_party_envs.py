@@ -55,6 +55,23 @@ def test_kaz_players_list_their_nearest_fellows_and_the_dead_leave_the_graph():
     vec_env.close()
 
 
+def test_kaz_observations_stay_in_their_declared_space():
+    kaz = load_example("kaz_pettingzoo", KAZ_MODULE)
+    from pettingzoo.butterfly.knights_archers_zombies.src.zombie import Zombie
+
+    env = kaz.make_env(archers=1, knights=1)
+    env.reset(seed=0)
+    game = env.unwrapped
+    game.agent_map["archer_0"].rect.y = 0  # an archer at the top, a zombie past the bottom (game over)
+    zombie = Zombie(game.np_random)
+    zombie.rect.y = 760
+    game.zombie_list.add(zombie)
+    obs, *_ = env.step({agent: 5 for agent in env.agents})
+    assert np.abs(game.observe("archer_0")).max() > 1  # the game's own observation leaves [-1, 1]
+    space = env.observation_space("archer_0")
+    assert ((space.low <= obs["archer_0"]) & (obs["archer_0"] <= space.high)).all()
+
+
 def test_tag_predators_learn_the_prey_are_driven_and_every_contact_pays_each_predator():
     tag = load_example("tag_mpe2", "mpe2")
     env = tag.make_env(predators=5, prey=2, observed=3)
