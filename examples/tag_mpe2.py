@@ -65,7 +65,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, list[dict]]:
     parser.add_argument("--prey", type=int, default=4)
     parser.add_argument("--max-cycles", type=int, default=50, help="steps per episode")
     parser.add_argument("--copies", type=int, default=4, help="env copies stepped together")
-    parser.add_argument("--timesteps", type=int, default=200_000, help="agent-steps of training")
+    parser.add_argument("--timesteps", type=int, default=150_000, help="agent-steps of training")
     parser.add_argument("--learning-starts", type=int, default=10_000, help="agent-steps before training")
     parser.add_argument("--eval-episodes", type=int, default=20, help="team episodes per evaluation")
     parser.add_argument("--seed", type=int, default=0)
