@@ -7,7 +7,8 @@ delayed rewards and stopping at terminations (optimum 8.8; no bootstrapping 4.0;
 through the termination 6.0; ``invest_gamma_0.95`` the same with the default discount),
 ``invest_time_limit`` bootstrapping at time limits (right: 6.0; treating them as terminations:
 8.8), ``tag`` a costly but necessary action (optimum 4 in expectation, never tagging 0), ``memory``
-a cue recalled two steps later (4.0 with memory, 2 by guessing). The models and budgets
+a cue recalled two steps later (4.0 with memory, 2 by guessing), ``memory_4`` and ``memory_8`` four
+and eight steps later. The models and budgets
 are those of ``tests/test_learning.py``; one torch thread.
 """
 
@@ -46,6 +47,14 @@ SETTINGS = {
     "SACHGRN 6,000 agent-steps": ("SACHGRN", dict(timesteps=6_000)),
     "SoftHGRN recurrent=False": ("SoftHGRN", dict(policy_kwargs=dict(recurrent=False))),
     "SACHGRN recurrent=False": ("SACHGRN", dict(policy_kwargs=dict(recurrent=False))),
+    "SoftHGRN sequence_length=8": ("SoftHGRN", dict(sequence_length=8)),
+    "SACHGRN sequence_length=8": ("SACHGRN", dict(sequence_length=8)),
+    "SoftHGRN sequence_length=16": ("SoftHGRN", dict(sequence_length=16)),
+    "SACHGRN sequence_length=16": ("SACHGRN", dict(sequence_length=16)),
+    "SACHGRN recurrent=False sequence_length=8": (
+        "SACHGRN",
+        dict(sequence_length=8, policy_kwargs=dict(recurrent=False)),
+    ),
 }
 
 

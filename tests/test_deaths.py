@@ -207,7 +207,7 @@ def gradients_after_one_step(model, batch) -> list[th.Tensor]:
     """The gradients of every network and of the temperature (``H - H_target``) of one ``train``
     step on ``batch``; the policy's parameters are restored after it."""
     state = {key: value.clone() for key, value in model.policy.state_dict().items()}
-    model.replay_buffer.sample = lambda *args, **kwargs: batch
+    model.replay_buffer.sample_sequences = lambda *args, **kwargs: [batch]
     model.policy.zero_grad(set_to_none=True)
     th.manual_seed(0)
     model.train(gradient_steps=1, batch_size=len(batch.rewards))

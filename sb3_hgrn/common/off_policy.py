@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import torch as th
 from gymnasium import spaces
+from stable_baselines3.common import torch_layers as sb3_torch_layers
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, RolloutReturn, Schedule, TrainFreq
@@ -26,6 +27,7 @@ from stable_baselines3.common.utils import (
 )
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_hgrn.common import torch_layers
 from sb3_hgrn.common.arguments import argument_hints, check_argument_types, is_integer, is_number
 from sb3_hgrn.common.buffers import GraphReplayBuffer, GraphSamples
 from sb3_hgrn.common.checks import check_rewards
@@ -513,13 +515,20 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
     @classmethod
     def _loadable_classes(cls) -> list[type]:
         """The classes a model file may name when it is loaded without trust: the algorithm's policy
-        classes and torch's optimisers."""
-        optimizers = [
-            value
-            for value in vars(th.optim).values()
-            if isinstance(value, type) and issubclass(value, th.optim.Optimizer)
+        classes, torch's optimisers and the features extractors of sb3_hgrn and SB3."""
+
+        def subclasses(module: Any, base: type) -> list[type]:
+            return [
+                value
+                for value in vars(module).values()
+                if isinstance(value, type) and issubclass(value, base)
+            ]
+
+        extractors = [
+            *subclasses(sb3_torch_layers, sb3_torch_layers.BaseFeaturesExtractor),
+            *subclasses(torch_layers, sb3_torch_layers.BaseFeaturesExtractor),
         ]
-        return [*cls.policy_aliases.values(), *optimizers]
+        return [*cls.policy_aliases.values(), *subclasses(th.optim, th.optim.Optimizer), *extractors]
 
     @classmethod
     def _check_saved_algorithm(cls, source: ZipSource, name: str) -> None:
