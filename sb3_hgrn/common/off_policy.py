@@ -26,7 +26,13 @@ from stable_baselines3.common.utils import (
 )
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_hgrn.common.arguments import argument_hints, check_argument_types, is_integer, is_number
+from sb3_hgrn.common.arguments import (
+    argument_hints,
+    check_argument_types,
+    is_integer,
+    is_number,
+    named_parameters,
+)
 from sb3_hgrn.common.buffers import GraphReplayBuffer, GraphSamples
 from sb3_hgrn.common.checks import check_rewards
 from sb3_hgrn.common.files import (
@@ -186,6 +192,19 @@ def check_model_arguments(algorithm: type[GraphOffPolicyAlgorithm], arguments: M
     policy = arguments.get("policy", "GraphPolicy")
     policy_class = algorithm.policy_aliases[policy] if isinstance(policy, str) else policy
     check_policy_kwargs(policy_class, arguments.get("policy_kwargs") or {}, algorithm.__init__)
+
+
+def check_added_arguments(algorithm: type[GraphOffPolicyAlgorithm], arguments: Mapping[str, Any]) -> None:
+    """Raise a ``TypeError`` naming the argument unless the numbers and flags among the arguments that
+    ``algorithm`` adds to those of :class:`GraphOffPolicyAlgorithm` have their annotated types (as
+    :func:`check_model_arguments` checks the shared ones, which the base constructor does itself).
+
+    :param arguments: ``locals()`` at the start of ``algorithm.__init__``; names that are not its
+        arguments are ignored.
+    """
+    shared = set(named_parameters(GraphOffPolicyAlgorithm.__init__))
+    added = {name: value for name, value in arguments.items() if name not in shared}
+    check_argument_types(argument_hints(algorithm.__init__), added)
 
 
 def check_policy(policy: Any, aliases: dict[str, type]) -> None:
