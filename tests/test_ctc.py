@@ -491,6 +491,32 @@ def test_invalid_arguments_raise(kwargs):
         ctc_v0.parallel_env(**kwargs)
 
 
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(n_hunters="4"), "n_hunters must be an integer >= 1, got '4'"),
+        (dict(n_red_banks=2.5), "n_red_banks must be an integer >= 1, got 2.5"),
+        (dict(n_blue_banks=True), "n_blue_banks must be an integer >= 1, got True"),
+        (dict(n_blue_banks=0), "n_blue_banks must be an integer >= 1, got 0"),
+        (dict(map_size="40"), r"map_size must be an integer in 8..128 \(a 3-cell wall ring .*\), got '40'"),
+        (dict(map_size=129), r"map_size must be an integer in 8..128 \(.*\), got 129"),
+        (dict(max_cycles=10.0), "max_cycles must be an integer >= 1, got 10.0"),
+        (dict(n_red_resources="5"), "n_red_resources must be an integer >= 0, got '5'"),
+        (dict(n_blue_resources=-1), "n_blue_resources must be an integer >= 0, got -1"),
+        (dict(comm_range="5"), "comm_range must be a number >= 0, got '5'"),
+        (dict(max_neighbors=2.0), "max_neighbors must be an integer >= 1, got 2.0"),
+    ],
+)
+def test_a_wrongly_typed_or_out_of_range_argument_names_it_and_its_range(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        ctc_v0.parallel_env(**kwargs)
+
+
+def test_numpy_integers_are_integers():
+    env = ctc_v0.parallel_env(n_hunters=np.int64(3), n_red_banks=np.int32(1), map_size=np.int64(12))
+    assert env.n_agents == 3 + 1 + 10
+
+
 def test_invalid_actions_raise():
     env = small_env()
     env.reset_arrays(seed=0)

@@ -376,6 +376,25 @@ def test_invalid_arguments_raise(kwargs):
         pursuit_v0.parallel_env(**{"map_size": 16, **kwargs})
 
 
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(map_size="16"), r"map_size must be an integer >= 9 \(one predator\), got '16'"),
+        (dict(map_size=16.0), r"map_size must be an integer >= 9 \(one predator\), got 16.0"),
+        (dict(map_size=8), r"map_size must be an integer >= 9 \(one predator\), got 8"),
+        (dict(max_cycles="5"), "max_cycles must be an integer >= 1, got '5'"),
+        (dict(tag_penalty="x"), "tag_penalty must be a number, got 'x'"),
+        (dict(tag_penalty=float("nan")), "tag_penalty must be a number, got nan"),
+        (dict(comm_range="6"), "comm_range must be a number >= 0, got '6'"),
+        (dict(max_neighbors=2.5), "max_neighbors must be an integer >= 1, got 2.5"),
+        (dict(controller_deterministic="no"), "controller_deterministic must be true or false, got 'no'"),
+    ],
+)
+def test_a_wrongly_typed_or_out_of_range_argument_names_it_and_its_range(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        pursuit_v0.parallel_env(**{"map_size": 16, **kwargs})
+
+
 def test_invalid_controller_type_and_actions_raise():
     with pytest.raises(TypeError):
         small_env(prey_controller=3)

@@ -6,6 +6,7 @@ import torch as th
 
 from sb3_hgrn import SACHGRN, evaluate_graph_policy
 from sb3_hgrn.common.temperature import categorical_entropy
+from sb3_hgrn.experiments.config import ConfigError, check_params
 from tests.toy_envs import bit_vec_env, costly_tag_env, train_on
 
 
@@ -135,10 +136,35 @@ def test_bad_arguments():
         quick_model(bit_vec_env(n_envs=1), policy_kwargs=dict(n_critics=0))
     with pytest.raises(ValueError, match="behaviour_policy"):
         quick_model(bit_vec_env(n_envs=1), behaviour_policy="random")
-    with pytest.raises(ValueError, match="actor_steps"):
+    with pytest.raises(ValueError, match="actor_steps must be an integer >= 1, got 0"):
         quick_model(bit_vec_env(n_envs=1), actor_steps=0)
-    with pytest.raises(ValueError, match="actor_steps"):
-        quick_model(bit_vec_env(n_envs=1), actor_steps=2.5)
+    with pytest.raises(
+        ValueError, match="sequence_length must be a positive integer that divides batch_size=8"
+    ):
+        quick_model(bit_vec_env(n_envs=1), sequence_length=3)
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"actor_steps": "4"}, "actor_steps must be an integer, got '4'"),
+        ({"actor_steps": 2.0}, "actor_steps must be an integer, got 2.0"),
+        ({"actor_steps": True}, "actor_steps must be an integer, got True"),
+        ({"_init_setup_model": "no"}, "_init_setup_model must be true or false, got 'no'"),
+    ],
+)
+def test_own_arguments_of_a_wrong_type_raise_as_in_a_config_file(kwargs, message):
+    """SACHGRN's own arguments are checked by the mechanism that checks the shared ones, from Python as
+    from a config file."""
+    with pytest.raises(TypeError, match=message):
+        quick_model(bit_vec_env(n_envs=1), **kwargs)
+    if "_init_setup_model" not in kwargs:  # set by the runner, never by a config file
+        with pytest.raises(ConfigError, match=message):
+            check_params("sac_hgrn", kwargs)
+
+
+def test_a_numpy_integer_is_an_integer():
+    assert quick_model(bit_vec_env(n_envs=1), actor_steps=np.int64(2)).actor_steps == 2
 
 
 @pytest.mark.parametrize("actor_steps", [1, 3])

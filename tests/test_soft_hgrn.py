@@ -294,3 +294,9 @@ def test_random_graph_policy_examples_run_as_documented():
     assert usage["state"] is None and np.isfinite(usage["mean_return"])
     docstring = run_snippet("from sb3_hgrn import *\n" + docstring_example(RandomGraphPolicy.__doc__))
     assert docstring["actions"].shape == (docstring["env"].num_envs,) and np.isfinite(docstring["std_return"])
+
+
+def test_an_argument_soft_hgrn_adds_is_type_checked():
+    """SoftHGRN checks the arguments it adds to the shared ones as SACHGRN does (tests/test_sac_hgrn.py)."""
+    with pytest.raises(TypeError, match="_init_setup_model must be true or false, got 'no'"):
+        quick_model(bit_env(n_envs=1), _init_setup_model="no")

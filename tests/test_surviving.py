@@ -332,6 +332,23 @@ def test_invalid_arguments_raise(kwargs):
         surviving_v0.parallel_env(**kwargs)
 
 
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(id_bits="10"), "id_bits must be an integer in 1..32, got '10'"),
+        (dict(map_size="10"), r"map_size must be an integer >= 4 \(a wall ring .*\), got '10'"),
+        (dict(max_cycles=5.0), "max_cycles must be an integer >= 1, got 5.0"),
+        (dict(n_resources="2"), "n_resources must be an integer >= 0, got '2'"),
+        (dict(comm_range="3"), "comm_range must be a number >= 0, got '3'"),
+        (dict(max_neighbors=2.5), "max_neighbors must be an integer >= 1, got 2.5"),
+        (dict(observe_position="no"), "observe_position must be true or false, got 'no'"),
+    ],
+)
+def test_a_wrongly_typed_argument_names_it_and_its_range(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        surviving_v0.parallel_env(**kwargs)
+
+
 @pytest.mark.parametrize("n_agents", [0, 1025, 2.5, "4"])
 def test_the_agent_count_rule_is_stated_once(n_agents):
     """The env and the graph VecEnv built on it state the same valid range."""

@@ -413,6 +413,25 @@ def test_invalid_arguments_raise(kwargs):
         uav_mbs_v0.parallel_env(**kwargs)
 
 
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(n_users="30"), "n_users must be an integer >= 1, got '30'"),
+        (
+            dict(n_clusters=2.0),
+            r"n_clusters must be an integer in 1..120 \(at most one cluster per user\), got 2.0",
+        ),
+        (dict(max_cycles="5"), "max_cycles must be an integer >= 1, got '5'"),
+        (dict(comm_range="18"), "comm_range must be a number > 0, got '18'"),
+        (dict(coverage_range=0), "coverage_range must be a number > 0, got 0"),
+        (dict(max_neighbors="16"), "max_neighbors must be an integer >= 1, got '16'"),
+    ],
+)
+def test_a_wrongly_typed_argument_names_it_and_its_range(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        uav_mbs_v0.parallel_env(**kwargs)
+
+
 @pytest.mark.parametrize("n_uavs", [0, 1025, 2.0])
 def test_the_uav_count_is_an_integer_in_its_range(n_uavs):
     with pytest.raises(ValueError, match=f"n_uavs must be an integer in 1..1024 .*, got {n_uavs!r}"):

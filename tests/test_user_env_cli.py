@@ -133,6 +133,44 @@ def test_a_user_env_needs_a_config_with_its_budget(config_file, tmp_path, capsys
     assert set(REQUIRED_BUDGET_FIELDS) <= set(budget_settings(SPEC, "ci", [partial, extra]))
 
 
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        (
+            "default: {policy_kwargs: {hidden_dim: abc}}",
+            "{file}: default.policy_kwargs.hidden_dim must be an integer, got 'abc' (SoftHGRN, preset "
+            "'soft_hgrn').",
+        ),
+        (
+            "budgets: {ci: {soft_hgrn: {learning_starts: 1.5}}}",
+            "{file}: budgets.ci.soft_hgrn.learning_starts must be an integer, got 1.5",
+        ),
+        (
+            "soft_hgrn: {bogus: 1}",
+            "{file}: soft_hgrn: SoftHGRN (preset 'soft_hgrn') takes no argument 'bogus'",
+        ),
+        ("budgets: {ci: {paper: 'no'}}", "{file} budget ci: paper must be true or false, got 'no'."),
+        (
+            "budgets: {ci: {eval_n_envs: 2.0}}",
+            "{file} budget ci: eval_n_envs must be a positive integer, got 2.0.",
+        ),
+        ("budgets: {ci: {n_envs: true}}", "{file} budget ci: n_envs must be a positive integer, got True."),
+        (
+            "budgets: {ci: {eval_epsilons: [0.3, x]}}",
+            "{file} budget ci: eval_epsilons must be a list of numbers in [0, 1], got [0.3, 'x'].",
+        ),
+    ],
+)
+def test_a_wrongly_typed_value_names_the_config_file_it_is_in(text, message, config_file, tmp_path):
+    """Each file's values are checked before they are merged, so the message names the file (here the
+    second of two) and the value's place in it."""
+    second = tmp_path / "second.yml"
+    second.write_text(text)
+    with pytest.raises(ConfigError) as error:
+        resolve_config(SPEC, "soft_hgrn", "ci", config_file=[config_file, second])
+    assert message.format(file=second) in str(error.value)
+
+
 def test_a_pettingzoo_style_module_attribute_is_an_env(config_file):
     config = resolve_config("sb3_hgrn.envs:surviving_v0", "soft_hgrn", "ci", config_file=config_file)
     config.env_kwargs = {"n_agents": 4, "map_size": 8}

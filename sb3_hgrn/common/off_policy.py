@@ -28,7 +28,13 @@ from stable_baselines3.common.utils import (
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_hgrn.common import torch_layers
-from sb3_hgrn.common.arguments import argument_hints, check_argument_types, is_integer, is_number
+from sb3_hgrn.common.arguments import (
+    argument_hints,
+    check_argument_types,
+    is_integer,
+    is_number,
+    named_parameters,
+)
 from sb3_hgrn.common.buffers import GraphReplayBuffer, GraphSamples
 from sb3_hgrn.common.checks import check_rewards
 from sb3_hgrn.common.files import (
@@ -160,34 +166,52 @@ def check_algorithm_arguments(
         )
 
 
-def check_hidden_dtype(hidden_dtype: Any) -> None:
+def check_hidden_dtype(hidden_dtype: Any, prefix: str = "") -> None:
     """Raise a ``TypeError`` unless ``hidden_dtype`` names a numpy float dtype (the replay buffer's
-    storage of recurrent states)."""
+    storage of recurrent states); ``prefix`` goes before the name in the message."""
     try:
         kind = np.dtype(hidden_dtype).kind
     except TypeError:
         kind = None
     if kind != "f":
         raise TypeError(
-            "hidden_dtype must name a numpy float dtype for the recurrent states in the replay buffer "
-            f"(float16, float32 or float64), got {hidden_dtype!r}."
+            f"{prefix}hidden_dtype must name a numpy float dtype for the recurrent states in the replay "
+            f"buffer (float16, float32 or float64), got {hidden_dtype!r}."
         )
 
 
-def check_model_arguments(algorithm: type[GraphOffPolicyAlgorithm], arguments: Mapping[str, Any]) -> None:
+def check_model_arguments(
+    algorithm: type[GraphOffPolicyAlgorithm], arguments: Mapping[str, Any], prefix: str = ""
+) -> None:
     """Raise a ``TypeError`` naming the argument unless the numbers and flags among ``algorithm``'s
     ``arguments`` and their ``policy_kwargs`` have their annotated types (see
     :mod:`sb3_hgrn.common.arguments`), ``hidden_dtype`` names a float dtype and every entry of
     ``policy_kwargs`` is an argument of the policy (:func:`~sb3_hgrn.common.policies.check_policy_kwargs`).
 
     :param arguments: keyword arguments of ``algorithm`` by name (any subset of them).
+    :param prefix: put before the argument names in the message (``"default."``: the section of a
+        config file they come from).
     """
-    check_argument_types(argument_hints(algorithm.__init__), arguments)
+    check_argument_types(argument_hints(algorithm.__init__), arguments, prefix)
     if "hidden_dtype" in arguments:
-        check_hidden_dtype(arguments["hidden_dtype"])
+        check_hidden_dtype(arguments["hidden_dtype"], prefix)
     policy = arguments.get("policy", "GraphPolicy")
     policy_class = algorithm.policy_aliases[policy] if isinstance(policy, str) else policy
-    check_policy_kwargs(policy_class, arguments.get("policy_kwargs") or {}, algorithm.__init__)
+    policy_kwargs = arguments.get("policy_kwargs") or {}
+    check_policy_kwargs(policy_class, policy_kwargs, algorithm.__init__, f"{prefix}policy_kwargs")
+
+
+def check_added_arguments(algorithm: type[GraphOffPolicyAlgorithm], arguments: Mapping[str, Any]) -> None:
+    """Raise a ``TypeError`` naming the argument unless the numbers and flags among the arguments that
+    ``algorithm`` adds to those of :class:`GraphOffPolicyAlgorithm` have their annotated types (as
+    :func:`check_model_arguments` checks the shared ones, which the base constructor does itself).
+
+    :param arguments: ``locals()`` at the start of ``algorithm.__init__``; names that are not its
+        arguments are ignored.
+    """
+    shared = set(named_parameters(GraphOffPolicyAlgorithm.__init__))
+    added = {name: value for name, value in arguments.items() if name not in shared}
+    check_argument_types(argument_hints(algorithm.__init__), added)
 
 
 def check_policy(policy: Any, aliases: dict[str, type]) -> None:

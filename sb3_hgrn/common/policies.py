@@ -55,7 +55,10 @@ def policy_parameters(policy_class: type[GraphPolicy]) -> list[str]:
 
 
 def check_policy_kwargs(
-    policy_class: type[GraphPolicy], policy_kwargs: dict[str, Any], algorithm: Callable[..., Any]
+    policy_class: type[GraphPolicy],
+    policy_kwargs: dict[str, Any],
+    algorithm: Callable[..., Any],
+    name: str = "policy_kwargs",
 ) -> None:
     """Raise a ``TypeError`` naming the argument unless every entry of ``policy_kwargs`` is an argument
     of ``policy_class`` with a value of its annotated type (for numbers and flags, see
@@ -63,6 +66,7 @@ def check_policy_kwargs(
     a network option of such a value.
 
     :param algorithm: the algorithm's constructor, to say when a misplaced key is its argument.
+    :param name: what the messages call ``policy_kwargs`` (``default.policy_kwargs`` in a config file).
     """
     accepted = policy_parameters(policy_class)
     for key in policy_kwargs:
@@ -73,21 +77,21 @@ def check_policy_kwargs(
                 else ""
             )
             raise TypeError(
-                f"policy_kwargs.{key} is not an argument of {policy_class.__name__}; its arguments: "
+                f"{name}.{key} is not an argument of {policy_class.__name__}; its arguments: "
                 f"{', '.join(accepted)}{hint}."
             )
     bases = policy_class.__mro__[: policy_class.__mro__.index(GraphPolicy) + 1]
     hints = {name: kinds for cls in reversed(bases) for name, kinds in argument_hints(cls.__init__).items()}
-    check_argument_types(hints, policy_kwargs, "policy_kwargs.")
-    for name in policy_class.network_arguments:
-        options = policy_kwargs.get(name) or {}
+    check_argument_types(hints, policy_kwargs, f"{name}.")
+    for network in policy_class.network_arguments:
+        options = policy_kwargs.get(network) or {}
         for key in options:
             if key not in NETWORK_OPTIONS:
                 raise TypeError(
-                    f"policy_kwargs.{name}.{key} is not a network option; the network options: "
+                    f"{name}.{network}.{key} is not a network option; the network options: "
                     f"{', '.join(NETWORK_OPTIONS)}."
                 )
-        check_argument_types(hints, options, f"policy_kwargs.{name}.")
+        check_argument_types(hints, options, f"{name}.{network}.")
 
 
 class GraphPolicy(BasePolicy):

@@ -8,6 +8,8 @@ calls the array methods directly and never builds per-agent dicts.
 
 from __future__ import annotations
 
+import math
+import numbers
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
@@ -26,12 +28,39 @@ class AgentGroup(NamedTuple):
     action_space: gym.spaces.Discrete
 
 
-def check_agent_count(name: str, count: Any, maximum: int, why: str) -> None:
-    """Raise a ``ValueError`` unless ``count`` is an integer in ``1..maximum``: the rule for the agent
-    count of every env (one agent makes a graph of its own; ``why`` says where the maximum comes from).
-    """
-    if isinstance(count, bool) or not isinstance(count, int | np.integer) or not 1 <= count <= maximum:
-        raise ValueError(f"{name} must be an integer in 1..{maximum} ({why}), got {count!r}.")
+def check_integer(name: str, value: Any, low: int, high: int | None = None, why: str = "") -> None:
+    """Raise a ``ValueError`` naming ``name``, the valid range and ``value`` unless ``value`` is a
+    Python or numpy integer (not a bool) in ``low..high`` (``>= low`` when ``high`` is ``None``);
+    ``why`` says where the bounds come from."""
+    integer = isinstance(value, int | np.integer) and not isinstance(value, bool)
+    if integer and low <= value and (high is None or value <= high):
+        return
+    valid = f">= {low}" if high is None else f"in {low}..{high}"
+    raise ValueError(f"{name} must be an integer {valid}{f' ({why})' if why else ''}, got {value!r}.")
+
+
+def check_number(name: str, value: Any, low: float | None = None, strict: bool = False) -> None:
+    """Raise a ``ValueError`` naming ``name``, the valid range and ``value`` unless ``value`` is a real
+    number (not a bool, not NaN) ``>= low`` (``> low`` when ``strict``; any when ``low`` is ``None``)."""
+    number = isinstance(value, numbers.Real) and not isinstance(value, bool) and not math.isnan(value)
+    if number and (low is None or (value > low if strict else value >= low)):
+        return
+    valid = "" if low is None else f" {'>' if strict else '>='} {low}"
+    raise ValueError(f"{name} must be a number{valid}, got {value!r}.")
+
+
+def check_flag(name: str, value: Any) -> None:
+    """Raise a ``ValueError`` naming ``name`` and ``value`` unless ``value`` is ``True`` or ``False``
+    (a string such as ``"no"`` would otherwise count as true)."""
+    if not isinstance(value, bool | np.bool_):
+        raise ValueError(f"{name} must be true or false, got {value!r}.")
+
+
+def check_agent_count(name: str, count: Any, maximum: int | None = None, why: str = "") -> None:
+    """Raise a ``ValueError`` unless ``count`` is an integer in ``1..maximum`` (``>= 1`` without a
+    maximum): the rule for the agent counts of every env (one agent makes a graph of its own; ``why``
+    says where the maximum comes from)."""
+    check_integer(name, count, 1, maximum, why)
 
 
 def binary_table(n_values: int, n_bits: int, dtype: np.dtype = np.int8) -> np.ndarray:

@@ -11,7 +11,15 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from sb3_hgrn.envs.base import AgentGroup, GraphParallelEnv, binary_table, padded_observation_space
+from sb3_hgrn.envs.base import (
+    AgentGroup,
+    GraphParallelEnv,
+    binary_table,
+    check_agent_count,
+    check_integer,
+    check_number,
+    padded_observation_space,
+)
 from sb3_hgrn.envs.graph import grid_neighbors
 
 HUNTER, RED_BANK, BLUE_BANK = 0, 1, 2  # group ids
@@ -629,28 +637,23 @@ def _check_arguments(
     comm_range: int,
     max_neighbors: int,
 ) -> None:
-    """Raise ``ValueError`` for constructor arguments outside their valid ranges."""
-    for name, count in (
-        ("n_hunters", n_hunters),
-        ("n_red_banks", n_red_banks),
-        ("n_blue_banks", n_blue_banks),
-    ):
-        if count < 1:
-            raise ValueError(f"{name} must be >= 1, got {count}.")
-    if not 2 * WALL_WIDTH + 2 <= map_size <= MAX_MAP_SIZE:
-        raise ValueError(
-            f"map_size must lie in {2 * WALL_WIDTH + 2}..{MAX_MAP_SIZE} (a 3-cell wall ring around at least "
-            f"2 x 2 cells; positions use {COORDINATE_BITS} bits), got {map_size}."
-        )
-    if max_cycles < 1:
-        raise ValueError(f"max_cycles must be >= 1, got {max_cycles}.")
-    for name, count in (("n_red_resources", n_red_resources), ("n_blue_resources", n_blue_resources)):
-        if count < 0:
-            raise ValueError(f"{name} must be >= 0, got {count}.")
-    if comm_range < 0:
-        raise ValueError(f"comm_range must be >= 0, got {comm_range}.")
-    if max_neighbors < 1:
-        raise ValueError(f"max_neighbors must be >= 1, got {max_neighbors}.")
+    """Raise ``ValueError`` naming the argument, its valid range and its value for constructor arguments
+    of a wrong type or outside their valid ranges."""
+    check_agent_count("n_hunters", n_hunters)
+    check_agent_count("n_red_banks", n_red_banks)
+    check_agent_count("n_blue_banks", n_blue_banks)
+    check_integer(
+        "map_size",
+        map_size,
+        2 * WALL_WIDTH + 2,
+        MAX_MAP_SIZE,
+        f"a 3-cell wall ring around at least 2 x 2 cells; positions use {COORDINATE_BITS} bits",
+    )
+    check_integer("max_cycles", max_cycles, 1)
+    check_integer("n_red_resources", n_red_resources, 0)
+    check_integer("n_blue_resources", n_blue_resources, 0)
+    check_number("comm_range", comm_range, 0)
+    check_integer("max_neighbors", max_neighbors, 1)
 
 
 def _given_cells(cells: np.ndarray | None, count: int, map_size: int, name: str) -> np.ndarray | None:

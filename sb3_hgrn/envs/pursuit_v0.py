@@ -11,7 +11,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from sb3_hgrn.envs.base import GraphParallelEnv
+from sb3_hgrn.envs.base import GraphParallelEnv, check_flag, check_integer, check_number
 from sb3_hgrn.envs.controllers import Controller, DrivenSide, controller_paths, make_controller
 from sb3_hgrn.envs.graph import grid_neighbors
 
@@ -117,7 +117,9 @@ class PursuitEnv(GraphParallelEnv):
         max_neighbors: int = 16,
         render_mode: str | None = None,
     ) -> None:
-        _check_arguments(map_size, max_cycles, learners, comm_range, max_neighbors)
+        _check_arguments(
+            map_size, max_cycles, learners, controller_deterministic, tag_penalty, comm_range, max_neighbors
+        )
         render_modes = self.metadata["render_modes"]
         if render_mode is not None and render_mode not in render_modes:
             raise ValueError(f"render_mode must be None or one of {render_modes}, got {render_mode!r}.")
@@ -414,19 +416,24 @@ def model_paths(env_kwargs: dict[str, Any]) -> dict[str, str]:
 
 
 def _check_arguments(
-    map_size: int, max_cycles: int, learners: str, comm_range: float, max_neighbors: int
+    map_size: int,
+    max_cycles: int,
+    learners: str,
+    controller_deterministic: bool,
+    tag_penalty: float,
+    comm_range: float,
+    max_neighbors: int,
 ) -> None:
-    """Raise ``ValueError`` for constructor arguments outside their valid ranges."""
-    if map_size < MIN_MAP_SIZE:
-        raise ValueError(f"map_size must be >= {MIN_MAP_SIZE} (one predator), got {map_size}.")
-    if max_cycles < 1:
-        raise ValueError(f"max_cycles must be >= 1, got {max_cycles}.")
+    """Raise ``ValueError`` naming the argument, its valid range and its value for constructor arguments
+    of a wrong type or outside their valid ranges (the map size sets the agent counts)."""
+    check_integer("map_size", map_size, MIN_MAP_SIZE, why="one predator")
+    check_integer("max_cycles", max_cycles, 1)
     if learners not in SIDES:
         raise ValueError(f"learners must be one of {SIDES}, got {learners!r}.")
-    if not comm_range >= 0:
-        raise ValueError(f"comm_range must be >= 0, got {comm_range}.")
-    if max_neighbors < 1:
-        raise ValueError(f"max_neighbors must be >= 1, got {max_neighbors}.")
+    check_flag("controller_deterministic", controller_deterministic)
+    check_number("tag_penalty", tag_penalty)
+    check_number("comm_range", comm_range, 0)
+    check_integer("max_neighbors", max_neighbors, 1)
 
 
 def parallel_env(**kwargs: Any) -> PursuitEnv:

@@ -11,7 +11,14 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from sb3_hgrn.envs.base import GraphParallelEnv, binary_table, check_agent_count
+from sb3_hgrn.envs.base import (
+    GraphParallelEnv,
+    binary_table,
+    check_agent_count,
+    check_flag,
+    check_integer,
+    check_number,
+)
 from sb3_hgrn.envs.graph import grid_neighbors
 
 N_ACTIONS = 5
@@ -99,7 +106,9 @@ class SurvivingEnv(GraphParallelEnv):
         food_map: np.ndarray | None = None,
         resource_positions: np.ndarray | None = None,
     ) -> None:
-        _check_arguments(n_agents, map_size, max_cycles, n_resources, comm_range, max_neighbors, id_bits)
+        _check_arguments(
+            n_agents, map_size, max_cycles, n_resources, comm_range, max_neighbors, id_bits, observe_position
+        )
         render_modes = self.metadata["render_modes"]
         if render_mode is not None and render_mode not in render_modes:
             raise ValueError(f"render_mode must be None or one of {render_modes}, got {render_mode!r}.")
@@ -387,21 +396,18 @@ def _check_arguments(
     comm_range: int,
     max_neighbors: int,
     id_bits: int,
+    observe_position: bool,
 ) -> None:
-    """Raise ``ValueError`` for constructor arguments outside their valid ranges."""
-    if not 1 <= id_bits <= MAX_ID_BITS:
-        raise ValueError(f"id_bits must lie in 1..{MAX_ID_BITS}, got {id_bits}.")
+    """Raise ``ValueError`` naming the argument, its valid range and its value for constructor arguments
+    of a wrong type or outside their valid ranges."""
+    check_integer("id_bits", id_bits, 1, MAX_ID_BITS)
     check_agent_count("n_agents", n_agents, 2**id_bits, f"2**id_bits, the agent index is {id_bits} bits wide")
-    if map_size < 4:
-        raise ValueError(f"map_size must be >= 4 (a wall ring around at least 2 x 2 cells), got {map_size}.")
-    if max_cycles < 1:
-        raise ValueError(f"max_cycles must be >= 1, got {max_cycles}.")
-    if n_resources < 0:
-        raise ValueError(f"n_resources must be >= 0, got {n_resources}.")
-    if comm_range < 0:
-        raise ValueError(f"comm_range must be >= 0, got {comm_range}.")
-    if max_neighbors < 1:
-        raise ValueError(f"max_neighbors must be >= 1, got {max_neighbors}.")
+    check_integer("map_size", map_size, 4, why="a wall ring around at least 2 x 2 cells")
+    check_integer("max_cycles", max_cycles, 1)
+    check_integer("n_resources", n_resources, 0)
+    check_number("comm_range", comm_range, 0)
+    check_integer("max_neighbors", max_neighbors, 1)
+    check_flag("observe_position", observe_position)
 
 
 def _given_cells(cells: np.ndarray | None, count: int, map_size: int, name: str) -> np.ndarray | None:

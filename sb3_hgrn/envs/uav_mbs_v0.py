@@ -11,7 +11,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from sb3_hgrn.envs.base import GraphParallelEnv, binary_table, check_agent_count
+from sb3_hgrn.envs.base import GraphParallelEnv, binary_table, check_agent_count, check_integer, check_number
 from sb3_hgrn.envs.graph import grid_neighbors
 
 # Space and discretisation: positions in [0, 1]^2 map to cells int(p * 200 + 13), clipped to [13, 212],
@@ -580,20 +580,15 @@ def _check_arguments(
     coverage_range: float,
     max_neighbors: int,
 ) -> None:
-    """Raise ``ValueError`` for constructor arguments outside their valid ranges."""
+    """Raise ``ValueError`` naming the argument, its valid range and its value for constructor arguments
+    of a wrong type or outside their valid ranges."""
     check_agent_count("n_uavs", n_uavs, 2**ID_BITS, f"the index bits are {ID_BITS} wide")
-    if n_users < 1:
-        raise ValueError(f"n_users must be >= 1, got {n_users}.")
-    if not 1 <= n_clusters <= n_users:
-        raise ValueError(f"n_clusters must lie in 1..n_users = {n_users}, got {n_clusters}.")
-    if max_cycles < 1:
-        raise ValueError(f"max_cycles must be >= 1, got {max_cycles}.")
-    if not comm_range > 0:
-        raise ValueError(f"comm_range must be > 0, got {comm_range}.")
-    if not coverage_range > 0:
-        raise ValueError(f"coverage_range must be > 0, got {coverage_range}.")
-    if max_neighbors < 1:
-        raise ValueError(f"max_neighbors must be >= 1, got {max_neighbors}.")
+    check_integer("n_users", n_users, 1)
+    check_integer("n_clusters", n_clusters, 1, n_users, "at most one cluster per user")
+    check_integer("max_cycles", max_cycles, 1)
+    check_number("comm_range", comm_range, 0, strict=True)
+    check_number("coverage_range", coverage_range, 0, strict=True)
+    check_integer("max_neighbors", max_neighbors, 1)
 
 
 def _given_positions(positions: np.ndarray | None, count: int, name: str) -> np.ndarray | None:

@@ -49,6 +49,7 @@ from typing import Any
 
 import yaml
 
+from sb3_hgrn.common.arguments import is_integer, is_number
 from sb3_hgrn.common.off_policy import check_model_arguments
 from sb3_hgrn.common.vec_env import REGISTERED_ENVS
 from sb3_hgrn.presets import PRESETS, merge
@@ -169,9 +170,13 @@ def load_hyperparams(env: str) -> dict[str, Any]:
         raise ConfigError(f"The env {env!r} is not a registered one and has no packaged config file.")
     text = (resources.files("sb3_hgrn") / "hyperparams" / f"{env}.yml").read_text(encoding="utf-8")
     config = yaml.safe_load(text) or {}
-    where = f"hyperparams/{env}.yml"
-    _check_config(config, where, complete=True)
+    _check_config(config, packaged_config_name(env), complete=True)
     return config
+
+
+def packaged_config_name(env: str) -> str:
+    """How messages name the packaged config file of the registered env ``env``."""
+    return f"hyperparams/{env}.yml"
 
 
 def load_config_file(path: str | os.PathLike) -> dict[str, Any]:
@@ -204,11 +209,24 @@ def _check_config(config: Any, where: str, complete: bool) -> None:
         check_budget_name(budget)
         section = {} if section is None else section
         _check_sections(section, BUDGET_FIELDS, f"{where} budget {budget}")
-        for key in REQUIRED_BUDGET_FIELDS:
-            if (complete or key in section) and (not isinstance(section.get(key), int) or section[key] < 1):
-                raise ConfigError(f"{where} budget {budget}: {key} must be a positive integer.")
+        _check_budget_values(section, f"{where} budget {budget}", complete)
         if "keep_checkpoints" in section:
             check_keep_checkpoints(section["keep_checkpoints"], f"{where} budget {budget}: keep_checkpoints")
+
+
+def _check_budget_values(section: dict[str, Any], where: str, complete: bool) -> None:
+    """Raise :class:`ConfigError` naming ``where``, the field and its value unless the counts of a budget
+    section are positive integers (those of :data:`REQUIRED_BUDGET_FIELDS` given when ``complete``),
+    ``paper`` is true or false and ``eval_epsilons`` a list of numbers in [0, 1]."""
+    for key in (*REQUIRED_BUDGET_FIELDS, "eval_n_envs"):
+        given = key in section or (complete and key in REQUIRED_BUDGET_FIELDS)
+        if given and not (is_integer(section.get(key)) and section[key] >= 1):
+            raise ConfigError(f"{where}: {key} must be a positive integer, got {section.get(key)!r}.")
+    if not isinstance(section.get("paper", False), bool):
+        raise ConfigError(f"{where}: paper must be true or false, got {section['paper']!r}.")
+    epsilons = section.get("eval_epsilons") or []
+    if not isinstance(epsilons, list) or not all(is_number(eps) and 0 <= eps <= 1 for eps in epsilons):
+        raise ConfigError(f"{where}: eval_epsilons must be a list of numbers in [0, 1], got {epsilons!r}.")
 
 
 def check_keep_checkpoints(value: Any, name: str) -> int:
@@ -312,29 +330,47 @@ class RunConfig:
         return cls(**known)
 
 
-def check_params(preset: str, params: dict[str, Any]) -> None:
+def check_params(preset: str, params: dict[str, Any], where: str = "", section: str = "") -> None:
     """Raise :class:`ConfigError` for algorithm arguments that preset's class does not take (see
     :func:`check_param_names`), and for numbers, flags and ``policy_kwargs`` of a wrong type (see
-    :func:`~sb3_hgrn.common.off_policy.check_model_arguments`)."""
-    check_param_names(preset, params)
+    :func:`~sb3_hgrn.common.off_policy.check_model_arguments`).
+
+    :param where: the config file ``params`` come from, named first in the message (none: they come
+        from the command line, ``--param``).
+    :param section: the section of that file that holds them (``default``, ``budgets.ci.soft_hgrn``),
+        put before the argument's name.
+    """
     algorithm = PRESETS[preset][0]
+    context = f"{algorithm.__name__} (preset {preset!r})"
+    check_param_names(preset, params, f"{where}: {section}: {context}" if where else context)
     try:
-        check_model_arguments(algorithm, params)
+        check_model_arguments(algorithm, params, f"{section}." if section else "")
     except TypeError as error:
-        raise ConfigError(f"{algorithm.__name__} (preset {preset!r}): {error}") from error
+        if where:
+            raise ConfigError(
+                f"{where}: {str(error).removesuffix('.')} ({algorithm.__name__}, preset {preset!r})."
+            ) from error
+        raise ConfigError(f"{context}: {error}") from error
 
 
-def check_param_names(preset: str, params: dict[str, Any]) -> None:
+def check_param_names(preset: str, params: dict[str, Any], where: str = "") -> None:
     """Raise :class:`ConfigError` for algorithm arguments that preset's class does not take or that the
-    runner sets itself."""
+    runner sets itself.
+
+    :param where: where ``params`` come from, named first in the message (default: the algorithm).
+    """
     algorithm = PRESETS[preset][0]
+    where = where or f"{algorithm.__name__} (preset {preset!r})"
     accepted = set(inspect.signature(algorithm.__init__).parameters) - {"self"}
     for key in params:
         if key in RESERVED_PARAMS:
-            raise ConfigError(f"{key!r} is set by the runner, not by --param (use the command's own option).")
+            raise ConfigError(
+                f"{where}: {key!r} is set by the runner, not by --param or a config file (use the "
+                "command's own option)."
+            )
         if key not in accepted:
             raise ConfigError(
-                f"{algorithm.__name__} (preset {preset!r}) takes no argument {key!r}; "
+                f"{where} takes no argument {key!r}; "
                 f"its arguments: {', '.join(sorted(accepted - RESERVED_PARAMS))}."
             )
 
@@ -364,16 +400,17 @@ def resolve_config(
     check_env_name(env)
     check_preset_name(preset)
     check_budget_name(budget)
-    configs = _load_configs(env, budget, config_file)
+    named_configs = _load_configs(env, budget, config_file)
     hyperparams: dict[str, Any] = {}
-    for config in configs:
-        section = _budget_section(config, budget)
-        for layer in (config.get("default"), config.get(preset), section.get("default"), section.get(preset)):
-            hyperparams = merge(hyperparams, layer or {})
+    for where, config in named_configs:
+        for section, layer in _param_layers(config, preset, budget):
+            check_params(preset, layer, where, section)
+            hyperparams = merge(hyperparams, layer)
+    check_params(preset, params or {})
     hyperparams = merge(hyperparams, params or {})
-    check_params(preset, hyperparams)
     if timesteps is not None and timesteps < 1:
         raise ConfigError(f"--timesteps must be a positive number of agent-steps, got {timesteps}.")
+    configs = [config for _, config in named_configs]
     config = _budget_config(configs, env, preset, budget, seed, timesteps, hyperparams, env_params)
     if keep_checkpoints is not None:
         config.keep_checkpoints = check_keep_checkpoints(keep_checkpoints, "--keep-checkpoints")
@@ -395,19 +432,34 @@ def budget_settings(
     packaged config file and ``config_file`` (see :func:`resolve_config`) give, later files winning."""
     check_env_name(env)
     check_budget_name(budget)
-    return _merged_budget(_load_configs(env, budget, config_file), budget)[0]
+    configs = [config for _, config in _load_configs(env, budget, config_file)]
+    return _merged_budget(configs, budget)[0]
 
 
 def _load_configs(
     env: str, budget: str, config_file: str | os.PathLike | Sequence[str | os.PathLike] | None
-) -> list[dict[str, Any]]:
-    """The config files of a run of ``env`` at ``budget``: the packaged one of a registered env, then
-    ``config_file``'s; those of a user env must give the budget's :data:`REQUIRED_BUDGET_FIELDS`."""
-    configs = [load_config_file(path) for path in _config_paths(config_file)]
+) -> list[tuple[str, dict[str, Any]]]:
+    """The config files of a run of ``env`` at ``budget``, each as ``(its path, its content)``: the
+    packaged one of a registered env, then ``config_file``'s; those of a user env must give the
+    budget's :data:`REQUIRED_BUDGET_FIELDS`."""
+    configs = [(str(path), load_config_file(path)) for path in _config_paths(config_file)]
     if is_env_spec(env):
-        _check_user_env_budget(env, budget, configs)
+        _check_user_env_budget(env, budget, [config for _, config in configs])
         return configs
-    return [load_hyperparams(env), *configs]
+    return [(packaged_config_name(env), load_hyperparams(env)), *configs]
+
+
+def _param_layers(config: dict[str, Any], preset: str, budget: str) -> list[tuple[str, dict[str, Any]]]:
+    """The sections of a config file that hold ``preset``'s algorithm arguments at ``budget``, each as
+    ``(its path in the file, its arguments)``, in the order they are merged."""
+    section = _budget_section(config, budget)
+    layers = [
+        ("default", config.get("default")),
+        (preset, config.get(preset)),
+        (f"budgets.{budget}.default", section.get("default")),
+        (f"budgets.{budget}.{preset}", section.get(preset)),
+    ]
+    return [(path, layer) for path, layer in layers if layer]
 
 
 def _config_paths(

@@ -11,7 +11,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, Schedule
 from stable_baselines3.common.utils import polyak_update
 
-from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm, masked_mean, unroll
+from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm, check_added_arguments, masked_mean, unroll
 from sb3_hgrn.common.temperature import categorical_entropy
 from sb3_hgrn.sac_hgrn.policies import SACHGRNPolicy
 
@@ -129,6 +129,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ):
+        check_added_arguments(SACHGRN, locals())
         if actor_loss not in ACTOR_LOSSES:
             raise ValueError(f"actor_loss must be one of {ACTOR_LOSSES}, got {actor_loss!r}.")
         if alpha_entropy not in ALPHA_ENTROPIES:
@@ -137,7 +138,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
             raise ValueError(
                 f"behaviour_policy must be one of {BEHAVIOUR_POLICIES}, got {behaviour_policy!r}."
             )
-        if not isinstance(actor_steps, int) or actor_steps < 1:
+        if actor_steps < 1:
             raise ValueError(f"actor_steps must be an integer >= 1, got {actor_steps!r}.")
         super().__init__(
             policy,
@@ -174,7 +175,7 @@ class SACHGRN(GraphOffPolicyAlgorithm):
         self.actor_loss = actor_loss
         self.alpha_entropy = alpha_entropy
         self.behaviour_policy = behaviour_policy
-        self.actor_steps = actor_steps
+        self.actor_steps = int(actor_steps)
         if _init_setup_model:
             self._setup_model()
 

@@ -10,7 +10,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, Schedule
 from stable_baselines3.common.utils import polyak_update
 
-from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm, masked_mean, unroll
+from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm, check_added_arguments, masked_mean, unroll
 from sb3_hgrn.common.temperature import categorical_entropy
 from sb3_hgrn.soft_hgrn.policies import SoftHGRNPolicy
 
@@ -108,6 +108,7 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ):
+        check_added_arguments(SoftHGRN, locals())
         super().__init__(
             policy,
             env,
