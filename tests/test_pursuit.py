@@ -328,7 +328,8 @@ def test_a_saved_model_path_is_loaded_by_make_graph_vec_env_not_by_the_env(tmp_p
 
 
 def test_make_graph_vec_env_names_a_controller_argument_without_a_saved_model(tmp_path):
-    with pytest.raises(ValueError, match=r"prey_controller='chaser': No saved model at chaser \(nor chaser.zip\)"):
+    missing = r"prey_controller='chaser': No saved model at chaser \(nor chaser.zip\)"
+    with pytest.raises(ValueError, match=missing):
         make_graph_vec_env("pursuit_v0", env_kwargs=dict(map_size=16, prey_controller="chaser"))
 
 
