@@ -1,6 +1,7 @@
 """Does the saved model keep what training showed? Its evaluation against its last training episodes.
 
-Run: python benchmarks/deployed_gap.py FOLDER [FOLDER ...] [--fraction 0.1]
+Run: python benchmarks/deployed_gap.py FOLDER [FOLDER ...] [--fraction 0.1] [--online-episodes N]
+     [--env MODULE:ATTR]
 
 Reads every finished run folder under the given folders (those of ``sb3-hgrn train``, ``sweep`` or
 ``reproduce``: a ``team_returns.csv`` of training team episodes and an ``eval.json``) and prints one
@@ -9,6 +10,11 @@ episodes (as the library logs them: the policy that collected, DQN-style presets
 epsilon), the saved model's evaluation (its plain policy: sampled actions, greedy for DQN-style
 presets), the gap between the two and whether the evaluation stays within one standard deviation
 of the training mean. A summary line per folder, env and preset follows.
+
+With ``--online-episodes N``, runs whose model deploys a Polyak average (``policy_kwargs.average_tau``)
+are also evaluated with their online network over N episodes on the same env seeds as their final
+evaluation (``sb3-hgrn evaluate RUN --online``): the same training run, deployed either way. Runs of
+an env of one's own need ``--env`` naming it (as ``sb3-hgrn evaluate --env``).
 """
 
 from __future__ import annotations
@@ -19,6 +25,10 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
+import torch as th
+
+from sb3_hgrn.experiments.config import ConfigError
+from sb3_hgrn.experiments.runs import evaluate_run
 
 
 def training_tail(csv_path: Path, fraction: float) -> tuple[float, float, int]:
@@ -42,25 +52,43 @@ def main() -> None:
     )
     parser.add_argument("folders", nargs="+", type=Path)
     parser.add_argument("--fraction", type=float, default=0.1, help="share of the last training episodes")
+    parser.add_argument("--online-episodes", type=int, default=0, help="also evaluate the online network")
+    parser.add_argument("--env", help="the MODULE:ATTR env of runs of an env of one's own")
     args = parser.parse_args()
+    th.set_num_threads(1)
     groups: dict[tuple[str, ...], list[tuple[float, bool]]] = defaultdict(list)
-    print("| run | training tail (mean +- std, episodes) | saved model | gap | kept |")
-    print("|---|---|---|---|---|")
+    online_groups: dict[tuple[str, ...], list[tuple[float, bool]]] = defaultdict(list)
+    print(
+        "| run | training tail (mean +- std, episodes) | saved model | gap | kept | online network | kept |"
+    )
+    print("|---|---|---|---|---|---|---|")
     for root in args.folders:
         for folder in run_folders(root):
             mean, std, count = training_tail(folder / "team_returns.csv", args.fraction)
             evaluation = json.loads((folder / "eval.json").read_text(encoding="utf-8"))["mean"]
             kept = evaluation >= mean - std
-            groups[folder.parent.relative_to(root).parts].append((evaluation - mean, kept))
+            key = folder.parent.relative_to(root).parts
+            groups[key].append((evaluation - mean, kept))
+            online = "- | -"
+            if args.online_episodes:
+                try:
+                    value = evaluate_run(folder, args.online_episodes, env=args.env, online=True)["mean"]
+                except ConfigError:  # the model deploys its online network already
+                    value = None
+                if value is not None:
+                    online_groups[key].append((value - mean, value >= mean - std))
+                    online = f"{value:.1f} | {'yes' if value >= mean - std else 'NO'}"
             print(
                 f"| {folder.relative_to(root)} | {mean:.1f} +- {std:.1f} ({count}) | {evaluation:.1f} "
-                f"| {evaluation - mean:+.1f} | {'yes' if kept else 'NO'} |"
+                f"| {evaluation - mean:+.1f} | {'yes' if kept else 'NO'} | {online} |",
+                flush=True,
             )
-    print("\n| point / env / preset | mean gap | runs kept |")
-    print("|---|---|---|")
-    for key, values in groups.items():
-        gaps, kept = zip(*values, strict=True)
-        print(f"| {'/'.join(key)} | {np.mean(gaps):+.1f} | {sum(kept)} of {len(kept)} |")
+    print("\n| point / env / preset | deployed | mean gap | runs kept |")
+    print("|---|---|---|---|")
+    for label, table in (("saved model", groups), ("online network", online_groups)):
+        for key, values in table.items():
+            gaps, kept = zip(*values, strict=True)
+            print(f"| {'/'.join(key)} | {label} | {np.mean(gaps):+.1f} | {sum(kept)} of {len(kept)} |")
 
 
 if __name__ == "__main__":

@@ -5,18 +5,19 @@ from torch import nn
 from sb3_hgrn.common.averaging import PolyakWeight, polyak_average
 
 
-def test_plain_mean_of_the_first_iterates_then_an_exponential_average():
+def test_the_weight_falls_with_the_updates_until_it_reaches_tau():
+    """The first iterate is copied; the n-th later one weighs ``max(tau, 1 / (1 + n / 10))``: the
+    average covers about the last tenth of the updates, then the last ``1 / tau``."""
     network = nn.Linear(1, 1, bias=False)
     average = polyak_average(network, tau=0.25)
-    expected = None
-    for step, value in enumerate([4.0, 8.0, 0.0, 12.0, 20.0, 4.0]):
+    values = [4.0, 8.0, 0.0, 12.0, 20.0, 4.0] + [float(v) for v in range(40)]
+    expected = values[0]
+    for n, value in enumerate(values):
         with th.no_grad():
             network.weight.fill_(value)
         average.update_parameters(network)
-        if step < 4:  # 1 / tau = 4 iterates: their mean
-            expected = sum([4.0, 8.0, 0.0, 12.0][: step + 1]) / (step + 1)
-        else:
-            expected = 0.75 * expected + 0.25 * value
+        weight = max(0.25, 1.0 / (1.0 + n / 10))
+        expected = value if n == 0 else (1 - weight) * expected + weight * value
         assert average.module.weight.item() == pytest.approx(expected)
     assert not average.module.weight.requires_grad
 
@@ -25,6 +26,8 @@ def test_rejects_a_weight_outside_zero_one():
     for tau in (0.0, 1.5, -0.1):
         with pytest.raises(ValueError, match="tau"):
             PolyakWeight(tau)
+    with pytest.raises(ValueError, match="window"):
+        PolyakWeight(0.1, window=0.0)
 
 
 def averaged_pair(tau: float) -> tuple[nn.Module, th.optim.swa_utils.AveragedModel, nn.Module]:

@@ -27,6 +27,10 @@ def test_preset_learns_and_round_trips(name, tmp_path):
     actions, state = loaded.predict(obs, deterministic=True)
     np.testing.assert_array_equal(actions, expected)
     np.testing.assert_allclose(state[0], expected_state[0], atol=1e-6)
+    # every preset deploys the Polyak average of its acting network, and saves it
+    policy = loaded.policy
+    assert policy.average_tau == 0.002 and policy.deployed_network is policy.average_network
+    assert int(policy.average_network.n_averaged) == model._n_updates
 
 
 def test_presets_configure_the_ablations():

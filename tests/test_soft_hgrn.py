@@ -241,7 +241,8 @@ def test_average_tau_deploys_a_polyak_average_and_collects_with_the_online_netwo
     average, online = list(policy.q_net_average.parameters()), list(policy.q_net.parameters())
     assert not all(th.equal(a, b) for a, b in zip(average, initial, strict=True))
     assert not all(th.equal(a, b) for a, b in zip(average, online, strict=True))
-    expected = [0.9 * a + 0.1 * b for a, b in zip(average, online, strict=True)]
+    weight = max(0.1, 1 / (1 + int(policy.q_net_average.n_averaged) / 10))  # about the last tenth, then tau
+    expected = [(1 - weight) * a + weight * b for a, b in zip(average, online, strict=True)]
     policy.update_average()
     for updated, value in zip(policy.q_net_average.parameters(), expected, strict=True):
         th.testing.assert_close(updated, value)

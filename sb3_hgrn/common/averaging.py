@@ -10,23 +10,29 @@ from torch.optim.swa_utils import AveragedModel
 
 
 class PolyakWeight:
-    """``multi_avg_fn`` of :class:`~torch.optim.swa_utils.AveragedModel`: the plain mean of the first
-    ``1 / tau`` iterates, then ``average <- (1 - tau) average + tau current``.
+    """``multi_avg_fn`` of :class:`~torch.optim.swa_utils.AveragedModel`:
+    ``average <- (1 - w) average + w current`` with the weight ``w = max(tau, 1 / (1 + n / window))``
+    after ``n`` averaged iterates (the first iterate is copied).
 
-    Starting as a plain mean keeps the first iterates (a fresh network's weights) from weighing on
-    the average for about ``1 / tau`` updates. The weight is computed on the device, from the
-    count that ``AveragedModel`` keeps there, and every tensor of a device is updated in one
-    multi-tensor (``torch._foreach``) operation per step.
+    The weight falls with the number of updates, so the average covers about the last ``window``
+    fraction of them (the last tenth by default) until that span reaches ``1 / tau`` updates, and
+    then the last ``1 / tau``: early in training it follows the online network closely and never
+    weighs on the first iterates (a fresh network's weights) for long, however short the run. The
+    weight is computed on the device, from the count that ``AveragedModel`` keeps there, and every
+    tensor of a device is updated in one multi-tensor (``torch._foreach``) operation per step.
     """
 
-    def __init__(self, tau: float):
+    def __init__(self, tau: float, window: float = 0.1):
         if not 0 < tau <= 1:
             raise ValueError(f"The averaging weight tau must be in (0, 1], got {tau}.")
+        if not 0 < window <= 1:
+            raise ValueError(f"The averaging window must be a fraction in (0, 1], got {window}.")
         self.tau = tau
+        self.window = window
 
     def __call__(self, averaged: list[th.Tensor], current: list[th.Tensor], n_averaged: th.Tensor) -> None:
         """Move every tensor of ``averaged`` towards its counterpart in ``current``, in place."""
-        weight = (1.0 / (n_averaged + 1)).clamp(min=self.tau)
+        weight = (1.0 / (1.0 + n_averaged * self.window)).clamp(min=self.tau)
         steps = th._foreach_sub(current, averaged)
         th._foreach_mul_(steps, weight)
         th._foreach_add_(averaged, steps)

@@ -126,10 +126,11 @@ class GraphPolicy(BasePolicy):
         observation.
     :param features_extractor_kwargs: keyword arguments of ``features_extractor_class``.
     :param average_tau: keep a Polyak average of the acting network's weights (the Q-network, or the
-        actor), updated after every gradient step (:meth:`update_average`; the plain mean of the first
-        ``1 / average_tau`` iterates, then ``average <- (1 - tau) average + tau online``), and let
-        :meth:`act`, hence ``predict`` and every evaluation, act with it. Collecting experience and
-        the learning targets keep using the online networks. ``None``: act with the online network.
+        actor), updated after every gradient step (:meth:`update_average`; about the last tenth of
+        the updates, at most the last ``1 / average_tau``: see
+        :class:`~sb3_hgrn.common.averaging.PolyakWeight`), and let :meth:`act`, hence ``predict``
+        and every evaluation, act with it. Collecting experience and the learning targets keep
+        using the online networks. ``None``: act with the online network.
     """
 
     acting_network_name: ClassVar[str]
@@ -158,7 +159,7 @@ class GraphPolicy(BasePolicy):
         optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: dict[str, Any] | None = None,
         normalize_images: bool = False,
-        average_tau: float | None = None,
+        average_tau: float | None = 0.002,
     ):
         check_graph_spaces(observation_space, action_space)
         super().__init__(
