@@ -3,6 +3,7 @@
 import csv
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -377,8 +378,13 @@ def test_evaluate_online_acts_with_the_online_network_of_an_averaging_model(surv
         by_network[online] = evaluate_model(model, env, 4, True)
         assert evaluate_run(run, n_episodes=4, deterministic=True, online=online) == by_network[online]
     assert by_network[False] != by_network[True]
+    online_only = tmp_path / "online_only"
+    shutil.copytree(surviving_run, online_only)
+    model, _, _ = load_run(online_only, device="cpu")
+    model.policy.drop_average()
+    model.save(online_only / "model.zip")
     with pytest.raises(ConfigError, match="--online needs a model that deploys an averaged network"):
-        evaluate_run(surviving_run, n_episodes=1, online=True)
+        evaluate_run(online_only, n_episodes=1, online=True)
 
 
 def test_evaluation_names_the_action_rule_it_used(surviving_run, tmp_path, capsys):
