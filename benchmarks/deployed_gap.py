@@ -21,14 +21,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 import torch as th
 
-from sb3_hgrn.experiments.config import ConfigError
-from sb3_hgrn.experiments.runs import evaluate_run
+from sb3_hgrn.experiments.runs import evaluate_model, load_run
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # examples.<env>:make_env of one's own runs
 
 
 def training_tail(csv_path: Path, fraction: float) -> tuple[float, float, int]:
@@ -44,6 +46,19 @@ def run_folders(root: Path) -> list[Path]:
     return sorted(
         path.parent for path in root.rglob("eval.json") if (path.parent / "team_returns.csv").exists()
     )
+
+
+def online_evaluation(folder: Path, n_episodes: int, env: str | None) -> float | None:
+    """Mean team return of a run's online network over ``n_episodes`` on the env seeds of its final
+    evaluation (``None`` when the model deploys its online network already)."""
+    model, vec_env, _ = load_run(folder, env=env, device="cpu")
+    try:
+        if model.policy.average_network is None:
+            return None
+        model.policy.drop_average()
+        return evaluate_model(model, vec_env, n_episodes, deterministic=False)["mean"]
+    finally:
+        vec_env.close()
 
 
 def main() -> None:
@@ -70,14 +85,12 @@ def main() -> None:
             key = folder.parent.relative_to(root).parts
             groups[key].append((evaluation - mean, kept))
             online = "- | -"
-            if args.online_episodes:
-                try:
-                    value = evaluate_run(folder, args.online_episodes, env=args.env, online=True)["mean"]
-                except ConfigError:  # the model deploys its online network already
-                    value = None
-                if value is not None:
-                    online_groups[key].append((value - mean, value >= mean - std))
-                    online = f"{value:.1f} | {'yes' if value >= mean - std else 'NO'}"
+            value = (
+                online_evaluation(folder, args.online_episodes, args.env) if args.online_episodes else None
+            )
+            if value is not None:
+                online_groups[key].append((value - mean, value >= mean - std))
+                online = f"{value:.1f} | {'yes' if value >= mean - std else 'NO'}"
             print(
                 f"| {folder.relative_to(root)} | {mean:.1f} +- {std:.1f} ({count}) | {evaluation:.1f} "
                 f"| {evaluation - mean:+.1f} | {'yes' if kept else 'NO'} | {online} |",
