@@ -7,7 +7,7 @@ import torch as th
 from sb3_hgrn import SACHGRN, evaluate_graph_policy
 from sb3_hgrn.common.temperature import categorical_entropy
 from sb3_hgrn.experiments.config import ConfigError, check_params
-from tests.toy_envs import bit_vec_env, costly_tag_env, train_on
+from tests.toy_envs import bit_vec_env, check_deployed_average, costly_tag_env, train_on
 
 
 def quick_model(env, **kwargs):
@@ -305,29 +305,6 @@ def test_average_tau_deploys_an_averaged_actor_and_collects_with_the_online_one(
     online actor collects; the average survives save/load."""
     env = bit_vec_env(n_envs=2)
     model = quick_model(env, policy_kwargs=dict(hidden_dim=16, n_heads=2, average_tau=0.1))
-    policy = model.policy
     model.learn(400)
-    average, online = list(policy.actor_average.parameters()), list(policy.actor.parameters())
-    assert not all(th.equal(a, b) for a, b in zip(average, online, strict=True))
-    weight = max(0.1, 1 / (1 + int(policy.actor_average.n_averaged) / 10))  # about the last tenth, then tau
-    expected = [(1 - weight) * a + weight * b for a, b in zip(average, online, strict=True)]
-    policy.update_average()
-    for updated, value in zip(policy.actor_average.parameters(), expected, strict=True):
-        th.testing.assert_close(updated, value)
-
-    obs = env.reset()
-    obs_tensor, _ = policy.obs_to_tensor(obs)
-    hidden = th.zeros(env.num_envs, policy.state_dim)
-    with th.no_grad():
-        _, average_state = policy.act_with(policy.actor_average, obs_tensor, hidden, deterministic=True)
-        _, online_state = policy.act_with(policy.actor, obs_tensor, hidden, deterministic=True)
-        _, collected_state = model._behaviour_act(obs_tensor, hidden)
-    assert not th.allclose(average_state, online_state)
-    _, predicted_state = model.predict(obs, deterministic=True)
-    np.testing.assert_allclose(predicted_state[0][0], average_state.numpy(), atol=1e-6)
-    th.testing.assert_close(collected_state, online_state)
-
-    model.save(tmp_path / "model.zip")
-    loaded = SACHGRN.load(tmp_path / "model.zip", env=env)
-    for a, b in zip(loaded.policy.actor_average.parameters(), policy.actor_average.parameters(), strict=True):
-        th.testing.assert_close(a, b)
+    assert model.policy.average_network is model.policy.actor_average
+    check_deployed_average(model, env, tmp_path)

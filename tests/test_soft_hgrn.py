@@ -18,7 +18,7 @@ from sb3_hgrn import (
 )
 from sb3_hgrn.soft_hgrn.soft_hgrn import soft_value
 from tests.doc_snippets import docstring_example, python_block, run_snippet
-from tests.toy_envs import DictOnlyEnv, NeighborBitEnv
+from tests.toy_envs import DictOnlyEnv, NeighborBitEnv, check_deployed_average
 from tests.toy_envs import bit_vec_env as bit_env
 
 SMALL = dict(hidden_dim=16, n_heads=2)
@@ -235,35 +235,12 @@ def test_gradient_steps_minus_one_takes_one_step_per_graph_collected():
 def test_average_tau_deploys_a_polyak_average_and_collects_with_the_online_network(tmp_path):
     env = bit_env(n_envs=2)
     model = quick_model(env, policy_kwargs={**SMALL, "average_tau": 0.1})
-    policy = model.policy
-    initial = [p.clone() for p in policy.q_net_average.parameters()]
+    initial = [p.clone() for p in model.policy.q_net_average.parameters()]
     model.learn(400)
-    average, online = list(policy.q_net_average.parameters()), list(policy.q_net.parameters())
-    assert not all(th.equal(a, b) for a, b in zip(average, initial, strict=True))
-    assert not all(th.equal(a, b) for a, b in zip(average, online, strict=True))
-    weight = max(0.1, 1 / (1 + int(policy.q_net_average.n_averaged) / 10))  # about the last tenth, then tau
-    expected = [(1 - weight) * a + weight * b for a, b in zip(average, online, strict=True)]
-    policy.update_average()
-    for updated, value in zip(policy.q_net_average.parameters(), expected, strict=True):
-        th.testing.assert_close(updated, value)
-
-    obs = env.reset()
-    obs_tensor, _ = policy.obs_to_tensor(obs)
-    hidden = th.zeros(env.num_envs, policy.state_dim)
-    _, average_state = policy.act_with(policy.q_net_average, obs_tensor, hidden, deterministic=True)
-    _, online_state = policy.act_with(policy.q_net, obs_tensor, hidden, deterministic=True)
-    assert not th.allclose(average_state, online_state)
-    _, predicted_state = model.predict(obs, deterministic=True)
-    np.testing.assert_allclose(predicted_state[0][0], average_state.numpy(), atol=1e-6)
-    _, collected_state = model._behaviour_act(obs_tensor, hidden)
-    th.testing.assert_close(collected_state, online_state)
-
-    path = tmp_path / "model.zip"
-    model.save(path)
-    loaded = SoftHGRN.load(path, env=env)
-    assert loaded.policy.average_tau == 0.1
-    for a, b in zip(loaded.policy.q_net_average.parameters(), policy.q_net_average.parameters(), strict=True):
-        th.testing.assert_close(a, b)
+    assert not all(
+        th.equal(a, b) for a, b in zip(model.policy.q_net_average.parameters(), initial, strict=True)
+    )
+    check_deployed_average(model, env, tmp_path)
     with pytest.raises(ValueError, match="average_tau"):
         quick_model(env, policy_kwargs={**SMALL, "average_tau": 0.0})
 

@@ -3,8 +3,11 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import gymnasium as gym
 import numpy as np
+import torch as th
 from pettingzoo import ParallelEnv
 
 from sb3_hgrn import SACHGRN, SoftHGRN, evaluate_graph_policy, make_graph_vec_env
@@ -348,3 +351,38 @@ def greedy_return(model, make_env, n_episodes: int = 16, seed: int = 100) -> flo
     """Mean team return of ``model``'s greedy actions over ``n_episodes`` episodes of ``make_env()``."""
     env = make_graph_vec_env(make_env, n_envs=1, seed=seed)
     return evaluate_graph_policy(model, env, n_eval_episodes=n_episodes, deterministic=True)[0]
+
+
+def check_deployed_average(model, env, folder: Path) -> None:
+    """Check, on a ``model`` trained with ``average_tau=0.1`` on the graph VecEnv ``env``, that its
+    policy deploys the Polyak average of its acting network (Q-network or actor): one more update
+    moves it by ``max(0.1, 1 / (1 + n / 10))`` after ``n`` updates, ``predict`` acts with it, the
+    online network collects, and save/load keeps it (the zip is written into ``folder``)."""
+    policy = model.policy
+    average, online = list(policy.average_network.parameters()), list(policy.online_network.parameters())
+    assert not all(th.equal(a, b) for a, b in zip(average, online, strict=True))
+    weight = max(0.1, 1 / (1 + int(policy.average_network.n_averaged) / 10))  # the last tenth, then tau
+    expected = [(1 - weight) * a + weight * b for a, b in zip(average, online, strict=True)]
+    policy.update_average()
+    for updated, value in zip(policy.average_network.parameters(), expected, strict=True):
+        th.testing.assert_close(updated, value)
+
+    obs = env.reset()
+    obs_tensor, _ = policy.obs_to_tensor(obs)
+    hidden = th.zeros(env.num_envs, policy.state_dim)
+    with th.no_grad():
+        _, average_state = policy.act_with(policy.average_network, obs_tensor, hidden, deterministic=True)
+        _, online_state = policy.act_with(policy.online_network, obs_tensor, hidden, deterministic=True)
+        _, collected_state = model._behaviour_act(obs_tensor, hidden)
+    assert not th.allclose(average_state, online_state)
+    _, predicted_state = model.predict(obs, deterministic=True)
+    np.testing.assert_allclose(predicted_state[0][0], average_state.numpy(), atol=1e-6)
+    th.testing.assert_close(collected_state, online_state)
+
+    model.save(folder / "model.zip")
+    loaded = type(model).load(folder / "model.zip", env=env)
+    assert loaded.policy.average_tau == 0.1
+    for a, b in zip(
+        loaded.policy.average_network.parameters(), policy.average_network.parameters(), strict=True
+    ):
+        th.testing.assert_close(a, b)
