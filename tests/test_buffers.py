@@ -10,6 +10,7 @@ import torch as th
 
 from sb3_hgrn.common import buffers
 from sb3_hgrn.common.buffers import GraphReplayBuffer, smallest_index_dtype
+from sb3_hgrn.common.off_policy import concatenated, unroll
 
 N_AGENTS, N_COPIES, STATE = 3, 2, 4
 
@@ -104,6 +105,27 @@ def test_runs_are_consecutive_steps_of_one_copy_and_flag_episode_starts():
         fresh.add(**step_data(t))
     for step in fresh.sample_sequences(200, 2):
         np.testing.assert_array_equal(step.starts.numpy(), step.observations[:, 0, 0].numpy() == 2)
+
+
+def test_unroll_carries_the_state_along_a_run_and_restarts_it_at_episode_starts():
+    """A network whose state counts its steps: along a run of 4 steps from the stored state 10 it
+    reads 10, 11, 12, 13; a run whose third step starts an episode reads 10, 11, 0, 1. Outputs and
+    samples are step-major."""
+    buffer = make_buffer(steps=8)
+    for t in range(6):
+        buffer.add(**step_data(t))
+    steps = [buffer._get_samples(np.array([0, 0]) + k, np.array([0, 1])) for k in range(4)]
+    steps = [step._replace(starts=th.tensor([False, k == 2])) for k, step in enumerate(steps)]
+
+    def counter(observations, graph, state):
+        return state.clone(), state + 1
+
+    first = th.full((2, N_AGENTS, 1), 10.0)
+    outputs = unroll(counter, steps, [None] * 4, first)
+    np.testing.assert_array_equal(outputs[:, 0, 0].numpy(), [10, 10, 11, 11, 12, 0, 13, 1])
+    batch = concatenated(steps)
+    np.testing.assert_array_equal(batch.observations[:, 0, 0].numpy(), [0, 0, 1, 1, 2, 2, 3, 3])
+    assert concatenated(steps[:1]) is steps[0]
 
 
 def test_n_step_samples_sum_their_copys_steps_up_to_episode_ends():

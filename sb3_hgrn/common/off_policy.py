@@ -93,7 +93,9 @@ def masked_mean(values: th.Tensor, mask: th.Tensor) -> th.Tensor:
 
 def concatenated(steps: list[GraphSamples]) -> GraphSamples:
     """The samples of consecutive steps (each ``batch`` graphs) as one batch of ``steps * batch``
-    graphs, step-major."""
+    graphs, step-major (single steps are returned as they are, without a copy)."""
+    if len(steps) == 1:
+        return steps[0]
     return GraphSamples(
         *(None if fields[0] is None else th.cat(fields) for fields in zip(*steps, strict=True))
     )
