@@ -2,6 +2,7 @@
 
 Run: python benchmarks/surviving_paper_map.py [--preset soft_hgrn] [--seeds 0 1 2] [--paper]
      [--param KEY=VALUE ...] [--env-param KEY=VALUE ...] [--save PREFIX] [--final-episodes N]
+     [--device cpu|cuda|auto]
 
 100 agents, 32 x 32 map, 8 resource points, 500-step episodes, one env copy. After every
 ``--eval-every`` env steps (default 5,000, up to ``--env-steps`` 15,000) it prints the team return over
@@ -87,6 +88,7 @@ def main() -> None:
     parser.add_argument("--env-param", nargs="*", default=[], help="env arguments, KEY=VALUE")
     parser.add_argument("--final-episodes", type=int, default=0, help="further eps-0.3 episodes at the end")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--device", default="cpu", help="where the network runs: cpu, cuda or auto")
     parser.add_argument("--save", help="save each seed's final model as SAVE_seed<S>.zip")
     parser.add_argument(
         "--average-taus", type=float, nargs="*", default=[], help="also evaluate these averages"
@@ -106,7 +108,9 @@ def main() -> None:
     for seed in args.seeds:
         env = make_graph_vec_env("surviving_v0", n_envs=1, seed=seed, env_kwargs=env_kwargs)
         eval_env = make_graph_vec_env("surviving_v0", n_envs=1, seed=seed + 1000, env_kwargs=env_kwargs)
-        model = make_model(args.preset, env, paper=args.paper, seed=seed, **parse_assignments(args.param))
+        model = make_model(
+            args.preset, env, paper=args.paper, seed=seed, device=args.device, **parse_assignments(args.param)
+        )
         trained, train_time = 0, 0.0
         averages = Averages(model.policy, args.average_taus)
         for step in checkpoints:

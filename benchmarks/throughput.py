@@ -1,6 +1,7 @@
 """Throughput and memory of Soft-HGRN on Surviving: env, collection, updates, replay storage.
 
 Run: python benchmarks/throughput.py [--agents 100] [--sizes default paper paper-bf16] [--buffer-rows 50000]
+     [--device cpu|cuda|auto]
 
 Prints, for Surviving with ``--agents`` agents:
 - env steps/s with random actions (array API with the graph, the graph VecEnv, the PettingZoo dict API);
@@ -33,11 +34,13 @@ SIZES = {
 
 
 def best_rate(run, count: int, repeats: int = 3) -> float:
-    """Highest ``count / seconds`` over ``repeats`` calls of ``run()``."""
+    """Highest ``count / seconds`` over ``repeats`` calls of ``run()`` (CUDA work finished in the time)."""
     best = float("inf")
     for _ in range(repeats):
         start = time.perf_counter()
         run()
+        if th.cuda.is_available():
+            th.cuda.synchronize()
         best = min(best, time.perf_counter() - start)
     return count / best
 
@@ -80,10 +83,11 @@ def env_rates(n_agents: int, steps: int) -> None:
         print(f"env  {name:18s} {rate:9.0f} env steps/s  {rate * n_agents:11.0f} agent-steps/s")
 
 
-def collection_rates(n_agents: int, steps: int) -> None:
+def collection_rates(n_agents: int, steps: int, device: str) -> None:
     for n_copies in (1, 4):
         env = make_graph_vec_env("surviving_v0", n_envs=n_copies, seed=0, env_kwargs={"n_agents": n_agents})
-        model = SoftHGRN("GraphPolicy", env, learning_starts=10**9, seed=0)  # no training: collection only
+        # no training: collection only
+        model = SoftHGRN("GraphPolicy", env, learning_starts=10**9, seed=0, device=device)
         total = steps * env.num_envs
         model.learn(env.num_envs * 10)  # warm-up
         rate = best_rate(lambda model=model, total=total: model.learn(total), steps, repeats=2)
@@ -93,10 +97,10 @@ def collection_rates(n_agents: int, steps: int) -> None:
         )
 
 
-def update_rates(n_agents: int, size: str, batch_size: int, updates: int) -> None:
+def update_rates(n_agents: int, size: str, batch_size: int, updates: int, device: str) -> None:
     env = make_graph_vec_env("surviving_v0", n_envs=1, seed=0, env_kwargs={"n_agents": n_agents})
     model = SoftHGRN("GraphPolicy", env, learning_starts=10**9, batch_size=batch_size,
-                     policy_kwargs=dict(SIZES[size]), seed=0)  # fmt: skip
+                     policy_kwargs=dict(SIZES[size]), seed=0, device=device)  # fmt: skip
     model.learn(n_agents * 300)  # fill the buffer with 300 steps of collection
     model.train(gradient_steps=1, batch_size=batch_size)  # warm-up
     update_rate = best_rate(
@@ -158,14 +162,15 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=5)
     parser.add_argument("--buffer-rows", type=int, default=50_000)
     parser.add_argument("--threads", type=int, default=th.get_num_threads())
+    parser.add_argument("--device", default="cpu", help="where the network runs: cpu, cuda or auto")
     args = parser.parse_args()
     th.set_num_threads(args.threads)
-    print(f"Surviving, {args.agents} agents, torch {th.__version__}, {args.threads} threads")
+    print(f"Surviving, {args.agents} agents, torch {th.__version__}, {args.threads} threads, {args.device}")
     env_rates(args.agents, args.env_steps)
-    collection_rates(args.agents, args.collect_steps)
+    collection_rates(args.agents, args.collect_steps, args.device)
     for size in args.sizes:
         for batch_size in args.batch_sizes:
-            update_rates(args.agents, size, batch_size, args.updates)
+            update_rates(args.agents, size, batch_size, args.updates, args.device)
         buffer_memory(args.agents, size, args.buffer_rows)
     print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB")
 
