@@ -85,7 +85,7 @@ def test_train_writes_the_run_folder(surviving_run):
     assert results["std"] == pytest.approx(np.std(results["returns"]))
     assert results["deterministic"] is False and results["epsilon"] == 0.0
     assert results["agent_steps"] == 600 and results["env_steps"] == 120 and results["n_agents"] == 5
-    assert results["wall_time_s"] >= results["train_time_s"] > 0
+    assert results["wall_time_s"] >= results["train_time_s"] > 0 and results["train_cpu_s"] > 0
     assert results["epsilon_evaluations"]["0.3"]["n_episodes"] == 2
 
 

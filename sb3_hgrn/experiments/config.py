@@ -417,12 +417,19 @@ def resolve_config(
     return config
 
 
-def random_policy_config(env: str, budget: str = "cpu", seed: int = 0) -> RunConfig:
+def random_policy_config(
+    env: str,
+    budget: str = "cpu",
+    seed: int = 0,
+    config_file: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
+) -> RunConfig:
     """The evaluation settings of ``budget`` for the uniformly random policy (preset ``"random"``):
-    no training and no algorithm arguments; the anchor row of the Table 1 sweep."""
+    no training and no algorithm arguments; the anchor row of the Table 1 sweep. ``config_file``: as
+    :func:`budget_settings` (a ``MODULE:ATTR`` env needs one with its budget)."""
     check_env_name(env)
     check_budget_name(budget)
-    return _budget_config([load_hyperparams(env)], env, RANDOM_POLICY, budget, seed, 0, {}, None)
+    configs = [config for _, config in _load_configs(env, budget, config_file)]
+    return _budget_config(configs, env, RANDOM_POLICY, budget, seed, 0, {}, None)
 
 
 def budget_settings(

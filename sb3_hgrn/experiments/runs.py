@@ -412,7 +412,7 @@ def train_run(
     :return: the contents of ``eval.json``.
     """
     folder = Path(folder)
-    start = time.time()
+    start, cpu_start = time.time(), time.process_time()
     env = make_env(config, config.n_envs, config.seed)
     tensorboard_log = _tensorboard_dir(folder, verbose)
     model = new_model(config, env, verbose, tensorboard_log, device)
@@ -460,7 +460,7 @@ def train_run(
             # No model.zip is here to be replaced: a whole one was evaluated, a damaged one set aside.
             save_model_atomically(model, folder / MODEL_FILE)
         env.close()
-        train_time = time.time() - start
+        train_time, train_cpu_time = time.time() - start, time.process_time() - cpu_start
         results = _final_evaluation(config, model)
         n_agents = int(config.extra["n_agents"])
         results.update(
@@ -472,6 +472,7 @@ def train_run(
             env_steps=int(model.num_timesteps // n_agents),
             n_agents=n_agents,
             train_time_s=round(train_time, 2),
+            train_cpu_s=round(train_cpu_time, 2),  # CPU seconds of all threads: steadier on a busy machine
             eval_time_s=round(time.time() - start - train_time, 2),
             wall_time_s=round(time.time() - start, 2),
             resumed_from=None if checkpoint is None else checkpoint.name,

@@ -1,0 +1,170 @@
+"""Candidate defaults on a suite of eight many-agent envs, 3 seeds each, normalised over the suite.
+
+Run: python benchmarks/defaults_suite.py --folder sweeps/suite [--candidates default gs2:gradient_steps=2]
+     [--presets soft_hgrn dqn dgn] [--seeds 3] [--envs surviving_v0 ...] [--report-only]
+
+A candidate is a name and the algorithm arguments it sets over the library defaults
+(``NAME:KEY=VALUE,KEY=VALUE``; ``default`` sets none). For each candidate and each env of
+:data:`SUITE` the script runs ``sb3-hgrn sweep`` at the env's ``cpu`` budget (one run at a time, one
+torch thread; finished runs are kept and skipped), then evaluates the uniformly random policy on the
+same evaluation episodes. It prints, per env, each (candidate, preset)'s mean +- std of the saved
+models' evaluations and their mean wall time per run, and over the suite the IQM of the runs'
+normalised scores with its 95 % stratified-bootstrap interval: Random is 0 and the best mean of the
+table on that env is 1 (the ``dqn`` preset is near Random on some envs, so it cannot be the unit).
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sb3_hgrn.experiments.config import random_policy_config
+from sb3_hgrn.experiments.runs import evaluate_random_policy, read_eval, run_folder
+from sb3_hgrn.experiments.stats import iqm_interval
+
+
+@dataclass(frozen=True)
+class SuiteEnv:
+    """One env of the suite: its short ``name``, the ``env`` argument of the CLI and its config file."""
+
+    name: str
+    env: str
+    config: str | None = None
+
+
+SUITE = (
+    SuiteEnv("surviving_v0", "surviving_v0"),
+    SuiteEnv("pursuit_v0", "pursuit_v0"),
+    SuiteEnv("uav_mbs_v0", "uav_mbs_v0"),
+    SuiteEnv("ctc_v0", "ctc_v0"),
+    SuiteEnv("battle_magent2", "examples.battle_magent2:make_env", "examples/configs/battle_magent2.yml"),
+    SuiteEnv("spread_mpe2", "examples.spread_mpe2:make_env", "examples/configs/spread_mpe2.yml"),
+    SuiteEnv("kaz_pettingzoo", "examples.kaz_pettingzoo:make_env", "examples/configs/kaz_pettingzoo.yml"),
+    SuiteEnv("tag_mpe2", "examples.tag_mpe2:make_env", "examples/configs/tag_mpe2.yml"),
+)
+"""The four paper envs at their ``cpu`` budget, then four third-party envs through the examples' glue."""
+
+BUDGET = "cpu"
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A named set of algorithm arguments (``KEY=VALUE`` strings, as the CLI's ``--param``)."""
+
+    name: str
+    params: tuple[str, ...]
+
+    @classmethod
+    def parse(cls, text: str) -> Candidate:
+        name, _, assignments = text.partition(":")
+        params = tuple(item for item in assignments.split(",") if item)
+        if not name or any("=" not in item for item in params):
+            raise ValueError(f"--candidates: expected NAME or NAME:KEY=VALUE,KEY=VALUE, got {text!r}")
+        return cls(name, params)
+
+
+def sweep_root(folder: Path, candidate: Candidate, env: SuiteEnv) -> Path:
+    """Where the sweep of ``candidate`` on ``env`` keeps its runs (its one grid point, ``default``)."""
+    return folder / candidate.name / env.name / "default"
+
+
+def run_sweep(folder: Path, candidate: Candidate, env: SuiteEnv, presets: list[str], seeds: int) -> None:
+    """``sb3-hgrn sweep`` of ``presets`` x ``seeds`` with ``candidate``'s arguments on ``env``."""
+    command = [sys.executable, "-m", "sb3_hgrn", "sweep", "--env", env.env, "--budget", BUDGET,
+               "--presets", *presets, "--seeds", str(seeds), "--jobs", "1", "--threads", "1",
+               "--folder", str(folder / candidate.name / env.name)]  # fmt: skip
+    if env.config:
+        command += ["--config", env.config]
+    if candidate.params:
+        command += ["--param", *candidate.params]
+    subprocess.run(command, check=True)
+
+
+def random_scores(folder: Path, env: SuiteEnv, seeds: int) -> np.ndarray:
+    """``(seeds,)`` mean team returns of the uniformly random policy, evaluated once and kept."""
+    scores = []
+    for seed in range(seeds):
+        run = folder / "random" / env.name / f"seed_{seed}"
+        result = read_eval(run) or evaluate_random_policy(
+            random_policy_config(env.env, BUDGET, seed, env.config), run
+        )
+        scores.append(result["mean"])
+    return np.array(scores)
+
+
+def run_results(
+    folder: Path, candidate: Candidate, env: SuiteEnv, preset: str, seeds: int
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(seeds,)`` evaluation means and wall times of one (candidate, env, preset), or ``None``
+    while any seed is unfinished."""
+    results = [
+        read_eval(run_folder(sweep_root(folder, candidate, env), env.env, preset, seed))
+        for seed in range(seeds)
+    ]
+    if any(result is None for result in results):
+        return None
+    return np.array([r["mean"] for r in results]), np.array([r["wall_time_s"] for r in results])
+
+
+def report(
+    folder: Path, candidates: list[Candidate], presets: list[str], envs: list[SuiteEnv], seeds: int
+) -> None:
+    """Print the per-env table and the suite's normalised IQM of every (candidate, preset)."""
+    rows = [(candidate, preset) for candidate in candidates for preset in presets]
+    normalised: dict[tuple[str, str], list[np.ndarray]] = {(c.name, p): [] for c, p in rows}
+    print(f"| env | Random | {' | '.join(f'{c.name} {p}' for c, p in rows)} |")
+    print(f"|---|---|{'---|' * len(rows)}")
+    for env in envs:
+        random = random_scores(folder, env, seeds)
+        results = {(c.name, p): run_results(folder, c, env, p, seeds) for c, p in rows}
+        done = {key: value for key, value in results.items() if value is not None}
+        cells = [
+            f"{done[key][0].mean():.1f} +- {done[key][0].std():.1f} ({done[key][1].mean():.0f} s)"
+            if key in done else "-"
+            for key in results
+        ]  # fmt: skip
+        print(f"| {env.name} | {random.mean():.1f} +- {random.std():.1f} | {' | '.join(cells)} |")
+        if done:
+            best = max(scores.mean() for scores, _ in done.values())
+            for key, (scores, _) in done.items():
+                normalised[key].append((scores - random.mean()) / (best - random.mean()))
+    print("\nNormalised over the suite (Random 0, the best mean of the table on each env 1):")
+    for (name, preset), columns in normalised.items():
+        if columns:
+            interval = iqm_interval(np.stack(columns, axis=1))
+            print(
+                f"  {name:>12s} {preset:10s} IQM {interval.point:6.2f} "
+                f"[{interval.low:5.2f}, {interval.high:5.2f}]  over {len(columns)} envs x {seeds} seeds"
+            )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--folder", type=Path, required=True)
+    parser.add_argument("--candidates", nargs="+", default=["default"], type=Candidate.parse)
+    parser.add_argument("--presets", nargs="+", default=["soft_hgrn", "dqn", "dgn"])
+    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument(
+        "--envs", nargs="+", choices=[env.name for env in SUITE], default=[e.name for e in SUITE]
+    )
+    parser.add_argument(
+        "--report-only", action="store_true", help="print the tables of the runs already done"
+    )
+    args = parser.parse_args()
+    envs = [env for env in SUITE if env.name in args.envs]
+    if not args.report_only:
+        for candidate in args.candidates:
+            for env in envs:
+                run_sweep(args.folder, candidate, env, args.presets, args.seeds)
+    report(args.folder, args.candidates, args.presets, envs, args.seeds)
+
+
+if __name__ == "__main__":
+    main()
