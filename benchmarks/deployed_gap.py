@@ -28,7 +28,8 @@ from pathlib import Path
 import numpy as np
 import torch as th
 
-from sb3_hgrn.experiments.runs import evaluate_model, load_run
+from sb3_hgrn.experiments.policy_evaluation import evaluate_model
+from sb3_hgrn.experiments.runs import load_run
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # examples.<env>:make_env of one's own runs
 

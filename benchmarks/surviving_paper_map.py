@@ -28,7 +28,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from sb3_hgrn import evaluate_graph_policy, make_graph_vec_env
 from sb3_hgrn.common.averaging import polyak_average
 from sb3_hgrn.experiments.config import parse_assignments
-from sb3_hgrn.experiments.runs import EpsilonRandomPolicy
+from sb3_hgrn.experiments.policy_evaluation import EpsilonRandomPolicy
 from sb3_hgrn.presets import make_model
 
 PAPER_MAP = dict(n_agents=100, map_size=32, n_resources=8, max_cycles=500)

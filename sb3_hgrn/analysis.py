@@ -17,7 +17,8 @@ import torch.nn.functional as F
 from stable_baselines3.common.vec_env import VecEnv
 from torch import Tensor, nn
 
-from sb3_hgrn.common.hgrn import HGRN, MASKED_OUTPUT, GraphAttention, GraphBatch
+from sb3_hgrn.common.attention import GraphBatch
+from sb3_hgrn.common.hgrn import HGRN, MASKED_OUTPUT, GraphAttention
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
 
 

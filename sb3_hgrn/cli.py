@@ -421,7 +421,8 @@ def train_config(argv: Sequence[str]) -> RunConfig | None:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from sb3_hgrn.experiments.runs import run_folder, train_run
+    from sb3_hgrn.experiments.run_folder import run_folder
+    from sb3_hgrn.experiments.runs import train_run
 
     config = _train_config(args)
     _set_threads(args.threads)
@@ -478,7 +479,7 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 
 def _render(args: argparse.Namespace) -> int:
-    from sb3_hgrn.experiments.runs import render_run
+    from sb3_hgrn.experiments.render import render_run
 
     if args.fps <= 0:
         raise ConfigError(f"--fps must be positive, got {args.fps}.")

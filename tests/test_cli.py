@@ -25,15 +25,9 @@ from sb3_hgrn.experiments.config import (
     resolve_config,
 )
 from sb3_hgrn.experiments.paper import PAPER_TABLE1, TABLE1_ENVS
-from sb3_hgrn.experiments.runs import (
-    EpsilonRandomPolicy,
-    evaluate_model,
-    evaluate_random_policy,
-    evaluate_run,
-    load_run,
-    make_env,
-    read_eval,
-)
+from sb3_hgrn.experiments.policy_evaluation import EpsilonRandomPolicy, evaluate_model
+from sb3_hgrn.experiments.run_folder import read_eval
+from sb3_hgrn.experiments.runs import evaluate_random_policy, evaluate_run, load_run, make_env
 from sb3_hgrn.experiments.table1 import write_tables
 from sb3_hgrn.presets import TABLE1, make_model
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch as th
 
-from sb3_hgrn.common.controllers import ModelController, load_controller
+from sb3_hgrn.common.saved_controllers import ModelController, load_controller
 
 
 class TorchSampler:

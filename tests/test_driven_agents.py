@@ -10,7 +10,7 @@ from pettingzoo.test import parallel_api_test
 from pettingzoo.utils.conversions import parallel_to_aec_wrapper
 
 from sb3_hgrn import DrivenAgents, GraphFromPositions, SoftHGRN, make_graph_vec_env
-from sb3_hgrn.common.controllers import ModelController
+from sb3_hgrn.common.saved_controllers import ModelController
 
 N = 3  # agents per team
 TINY = dict(learning_starts=40, batch_size=8, buffer_size=1000, policy_kwargs=dict(hidden_dim=16), seed=0)

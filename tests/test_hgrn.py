@@ -8,16 +8,8 @@ import torch
 import torch.nn.functional as F
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from sb3_hgrn.common.hgrn import (
-    HGRN,
-    MASKED_OUTPUT,
-    PAPER_SIZE,
-    GraphAttention,
-    GraphBatch,
-    MeanCommunication,
-    SelfOnly,
-    _NeighborAttention,
-)
+from sb3_hgrn.common.attention import GraphBatch, NeighborAttention
+from sb3_hgrn.common.hgrn import HGRN, MASKED_OUTPUT, PAPER_SIZE, GraphAttention, MeanCommunication, SelfOnly
 
 IN_DIM, OUT_DIM, HEADS, HEAD_DIM = 6, 7, 2, 3
 
@@ -397,7 +389,7 @@ def test_hgat_gives_zero_message_from_a_group_without_neighbours(hetero_layer):
     graph = GraphBatch(GROUP_NEIGHBORS, GROUPS, n_groups=2)
     query, key, value = hetero_layer.project(x, graph)
     heads = hetero_layer.n_heads
-    messages, _ = _NeighborAttention.apply(query, key, value, graph.pattern(heads), graph.segments(True))
+    messages, _ = NeighborAttention.apply(query, key, value, graph.pattern(heads), graph.segments(True))
     assert messages.shape == (4, 2, heads, HEAD_DIM)
     assert messages[1, 1].abs().max() == 0  # agent 1 (group 0) has no group-1 neighbour
     own_value = F.relu(hetero_layer.value[0](x[0, 1])).reshape(heads, HEAD_DIM)

@@ -1,10 +1,13 @@
 """The package layout: the env side, ``sb3_hgrn.envs``, imports no torch, no Stable-Baselines3 and no
-learner code, and the top-level names of ``sb3_hgrn`` are imported only when used."""
+learner code, the learner's building blocks, ``sb3_hgrn.common``, do not import the package's face, and
+the top-level names of ``sb3_hgrn`` are imported only when used."""
 
+import ast
 import importlib.util
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -65,7 +68,25 @@ def test_the_env_side_imports_and_runs_without_the_learner_side():
     assert {"sb3_hgrn.envs.base", "sb3_hgrn.envs.wrappers", "sb3_hgrn.envs.position_graph"} <= set(
         report["imported"]
     )
+    assert "sb3_hgrn.validation" in report["loaded"]  # the checks both halves share
     assert learner_modules(report["loaded"]) == []
+
+
+def imports_of(path: Path) -> set[str]:
+    """The modules a source file imports (``from a import b`` counts as ``a``), at any depth."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0:
+            names.add(node.module)
+    return names
+
+
+def test_no_module_of_common_imports_the_package_face():
+    common = Path(sb3_hgrn.__file__).parent / "common"
+    offenders = sorted(path.name for path in common.glob("*.py") if "sb3_hgrn" in imports_of(path))
+    assert offenders == []
 
 
 def test_top_level_names_are_imported_on_first_use():

@@ -5,7 +5,7 @@ import pytest
 from pettingzoo.test import parallel_api_test
 
 from sb3_hgrn import SoftHGRN, make_graph_vec_env
-from sb3_hgrn.common.controllers import ModelController
+from sb3_hgrn.common.saved_controllers import ModelController
 from sb3_hgrn.envs import pursuit_v0
 from sb3_hgrn.envs.pursuit_v0 import PursuitEnv, evader_actions
 

@@ -24,7 +24,7 @@ from stable_baselines3.common.save_util import load_from_pkl, save_to_pkl
 
 from sb3_hgrn import SACHGRN, SoftHGRN, evaluate_graph_policy, make_graph_vec_env
 from sb3_hgrn.cli import main
-from sb3_hgrn.common import controllers
+from sb3_hgrn.common import saved_controllers
 from sb3_hgrn.common.checks import MAX_ABS_REWARD, observation_problem
 from sb3_hgrn.common.evaluation import RandomGraphPolicy
 from sb3_hgrn.common.files import DamagedModelFileError, save_model_atomically, write_text_atomically
@@ -35,9 +35,10 @@ from sb3_hgrn.experiments.callbacks import (
     rewind_team_returns,
 )
 from sb3_hgrn.experiments.config import ConfigError, RunConfig, resolve_config
+from sb3_hgrn.experiments.jobs import LOG_FILE, Job, check_budget_of_folder, run_jobs
 from sb3_hgrn.experiments.lock import PID_FILE, RunLock
-from sb3_hgrn.experiments.runs import check_stored_model_paths, trained_parameter_count
-from sb3_hgrn.experiments.table1 import LOG_FILE, Job, check_budget_of_folder, run_jobs
+from sb3_hgrn.experiments.runs import trained_parameter_count
+from sb3_hgrn.experiments.trust import check_stored_model_paths
 from sb3_hgrn.sac_hgrn.policies import SACHGRNPolicy
 from tests.toy_envs import BadValueEnv, DictOnlyEnv
 
@@ -877,7 +878,7 @@ def test_evaluate_refuses_a_controller_a_config_points_outside_the_run(root, tmp
     outside = tmp_path / "elsewhere" / "prey.zip"
     point_at_controller(folder, str(outside))
     loads = []
-    monkeypatch.setattr(controllers, "load_controller", lambda *args: loads.append(args))
+    monkeypatch.setattr(saved_controllers, "load_controller", lambda *args: loads.append(args))
     error = fails_with(["evaluate", str(folder), "--episodes", "1"], capsys)
     assert f"sets prey_controller='{outside}', a model outside the run folder" in error
     assert (

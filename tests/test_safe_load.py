@@ -24,7 +24,6 @@ from stable_baselines3.common.utils import LinearSchedule
 from sb3_hgrn import SACHGRN, SoftHGRN, make_graph_vec_env
 from sb3_hgrn.cli import main
 from sb3_hgrn.common import safe_load
-from sb3_hgrn.common.controllers import ModelController
 from sb3_hgrn.common.files import DamagedModelFileError, ModelFileError
 from sb3_hgrn.common.safe_load import (
     RECORD_MEMBER,
@@ -33,6 +32,7 @@ from sb3_hgrn.common.safe_load import (
     restricted_loads,
     to_plain,
 )
+from sb3_hgrn.common.saved_controllers import ModelController
 from sb3_hgrn.experiments.runs import _load_training_state, evaluate_run
 from tests.toy_envs import NeighborBitEnv, SignalReaderEnv
 

@@ -12,7 +12,7 @@ import pytest
 from rliable import library
 
 from sb3_hgrn.experiments.config import ConfigError
-from sb3_hgrn.experiments.runs import figure_root, run_folder
+from sb3_hgrn.experiments.run_folder import figure_root, run_folder
 from sb3_hgrn.experiments.stats import (
     INSTALL_COMMAND,
     improvement_interval,

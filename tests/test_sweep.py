@@ -17,9 +17,11 @@ import pytest
 from sb3_hgrn.cli import main
 from sb3_hgrn.experiments import backends
 from sb3_hgrn.experiments.backends import LocalBackend
+from sb3_hgrn.experiments.cells import format_number
 from sb3_hgrn.experiments.config import ConfigError
+from sb3_hgrn.experiments.jobs import Job, run_jobs
 from sb3_hgrn.experiments.lock import lock_holder
-from sb3_hgrn.experiments.runs import read_eval
+from sb3_hgrn.experiments.run_folder import read_eval
 from sb3_hgrn.experiments.sweep import (
     Point,
     SweepSettings,
@@ -30,7 +32,7 @@ from sb3_hgrn.experiments.sweep import (
     run_grid,
     split_values,
 )
-from sb3_hgrn.experiments.table1 import Job, format_number, run_jobs, run_sweep
+from sb3_hgrn.experiments.table1 import run_sweep
 
 REPO = Path(__file__).resolve().parents[1]
 CHILD_ENV = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}

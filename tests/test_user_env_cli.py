@@ -9,7 +9,7 @@ import yaml
 
 from sb3_hgrn import make_graph_vec_env
 from sb3_hgrn.cli import main
-from sb3_hgrn.common.controllers import ModelController
+from sb3_hgrn.common.saved_controllers import ModelController
 from sb3_hgrn.experiments.config import (
     REQUIRED_BUDGET_FIELDS,
     ConfigError,

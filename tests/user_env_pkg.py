@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from sb3_hgrn import DrivenAgents
-from sb3_hgrn.envs.controllers import controller_paths
+from sb3_hgrn.envs.driven_sides import controller_paths
 from tests.toy_envs import DictOnlyEnv
 
 NOT_A_FACTORY = 3

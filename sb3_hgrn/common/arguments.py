@@ -13,26 +13,16 @@ import typing
 from collections.abc import Callable, Mapping
 from typing import Any
 
-import numpy as np
+from sb3_hgrn.validation import is_flag, is_integer, is_number
 
 EXPECTED = {int: "an integer", float: "a number", bool: "true or false", type(None): "None"}
 """The checked types and how a message names them."""
 
 
-def is_integer(value: Any) -> bool:
-    """Whether ``value`` is a Python or numpy integer (not a bool)."""
-    return isinstance(value, int | np.integer) and not isinstance(value, bool)
-
-
-def is_number(value: Any) -> bool:
-    """Whether ``value`` is a Python or numpy integer or float (not a bool)."""
-    return isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool)
-
-
 MATCHES: dict[type, Callable[[Any], bool]] = {
     int: is_integer,
     float: is_number,
-    bool: lambda value: isinstance(value, bool | np.bool_),
+    bool: is_flag,
     type(None): lambda value: value is None,
 }
 

@@ -1,28 +1,24 @@
 """HGRN: graph-recurrent network over neighbour lists (pure torch).
 
-Agents of ``batch`` independent graphs are processed together. The graph of each batch entry is a
-neighbour list ``neighbors`` of shape ``(batch, n_agents, max_neighbors)`` holding agent indices
-within the same graph, ``-1`` marking an empty entry. Every communication layer always adds the
-agent itself (the self-loop), so lists may or may not contain ``i`` in row ``i``. A list is a set:
-an agent listed several times is one neighbour (only its first entry takes part).
-
-Attention is computed only over the listed neighbours, as sparse (CSR) matrix products over a
-pattern of ``max_neighbors + 1`` entries per agent and head: the cost is
-``O(batch * n_agents * (max_neighbors + 1))`` per feature; no ``n_agents x n_agents`` matrix is ever
-formed.
+Agents of ``batch`` independent graphs are processed together, each graph given as neighbour lists
+``(batch, n_agents, max_neighbors)`` (agent indices within the same graph, ``-1`` = no entry). Every
+communication layer always adds the agent itself (the self-loop). The attention layers run on the
+sparse kernel of :mod:`sb3_hgrn.common.attention`, which never forms an ``n_agents x n_agents``
+matrix.
 """
 
 from __future__ import annotations
 
 import contextlib
-import functools
 import math
-import warnings
 from collections.abc import Callable, Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+from sb3_hgrn.common.attention import GraphBatch, NeighborAttention, as_graph_batch
+from sb3_hgrn.validation import is_integer
 
 PAPER_SIZE: dict = {"hidden_dim": 256, "n_heads": 4, "head_dim": 256}
 """Network size of the original HGRN (4 heads of width 256 on a hidden size of 256)."""
@@ -33,332 +29,10 @@ MASKED_OUTPUT = -1e9
 """Output of the actions an agent's group does not have: softmax gives them probability 0."""
 
 
-def check_neighbors(neighbors: Tensor, n_agents: int) -> None:
-    """Raise a ``ValueError`` unless ``neighbors`` is ``(batch, n_agents, K)`` integer indices in
-    ``[-1, n_agents - 1]``.
-
-    Shape and dtype are always checked. The values are checked only on the CPU, where reading them
-    costs no device synchronisation; on an accelerator, check the lists where they enter (their CPU
-    copy from the env or the replay buffer). :func:`neighbor_entries` treats any index outside
-    ``[0, n_agents - 1]`` as an empty entry, so unchecked values never reach another graph.
-    """
-    if neighbors.dim() != 3 or neighbors.shape[1] != n_agents:
-        raise ValueError(
-            f"neighbors must have shape (batch, {n_agents}, max_neighbors), got {tuple(neighbors.shape)}"
-        )
-    if neighbors.dtype.is_floating_point or neighbors.dtype.is_complex or neighbors.dtype == torch.bool:
-        raise ValueError(f"neighbors must be an integer tensor, got dtype {neighbors.dtype}")
-    if neighbors.device.type == "cpu" and neighbors.numel() > 0:
-        low, high = int(neighbors.min()), int(neighbors.max())
-        if low < -1 or high >= n_agents:
-            raise ValueError(
-                f"neighbor indices must lie in [-1, {n_agents - 1}], got values in [{low}, {high}]"
-            )
-
-
-def neighbor_entries(neighbors: Tensor, n_agents: int) -> tuple[Tensor, Tensor, Tensor]:
-    """The attention entries of neighbour lists in canonical order, without reading values on the host.
-
-    An agent attends over itself and the distinct agents of its list: a list is a set, an agent
-    listed several times is attended once (its first entry) and an entry naming the agent itself
-    repeats the self-loop. Rows are the agents of the flattened ``(rows = batch * n_agents, ...)``
-    tensors; an entry's target is the flat row ``b * n_agents + j`` of the agent it attends to. The
-    entries that take no part (empty, out of range, repeated) each point at a row of their own that
-    no entry of the row attends to: with several graphs the row ``b' * n_agents + e`` of the next
-    graph ``b' = (b + 1) % batch`` (``e`` the entry's place in the row), with one graph a dummy
-    target ``rows + e`` past every agent (operands then get zero rows, see :func:`_padded`). The
-    entries of a row come sorted by target and free of repeats, as CSR column indices must be. Lists
-    wider than the graph are cut to ``n_agents`` entries, which hold every attended agent.
-
-    :param neighbors: ``(batch, n_agents, max_neighbors)`` integer agent indices, ``-1`` = no entry.
-    :param n_agents: number of agents per graph.
-    :return: ``targets`` ``(rows, E)`` with ``E = min(max_neighbors + 1, n_agents)``, ``positions``
-        ``(rows, E)``: the list place every entry comes from (0 = the agent itself, ``1 + m`` = list
-        entry ``m``), distinct in a row, and ``mask`` ``(rows, E)``: True at the entries taking part.
-    """
-    batch, _, width = neighbors.shape
-    rows = batch * n_agents
-    device = neighbors.device
-    own = torch.arange(n_agents, device=device).view(1, n_agents, 1).expand(batch, n_agents, 1)
-    local = torch.cat([own, neighbors.to(torch.long)], dim=2)
-    offsets = (torch.arange(batch, device=device) * n_agents).view(batch, 1, 1)
-    listed = (local >= 0) & (local < n_agents)
-    keys = torch.where(listed, local + offsets, rows).reshape(rows, width + 1)
-    # Stable: of equal targets the first list place (the self-loop before a listed self) comes first.
-    keys, positions = keys.sort(dim=1, stable=True)
-    taken = keys < rows
-    taken[:, 1:] &= keys[:, 1:] != keys[:, :-1]
-    places = torch.arange(width + 1, device=device)
-    keys, moved = torch.where(taken, keys, rows + places).sort(dim=1)
-    n_entries = min(width + 1, max(n_agents, 1))
-    keys, positions = keys[:, :n_entries], positions.gather(1, moved[:, :n_entries])
-    mask = keys < rows
-    if batch == 1:
-        return torch.where(mask, keys, rows + places[:n_entries]), positions, mask
-    next_graph = (torch.arange(rows, device=device) // n_agents + 1) % batch * n_agents
-    targets, order = torch.where(mask, keys, next_graph.unsqueeze(1) + places[:n_entries]).sort(dim=1)
-    return targets, positions.gather(1, order), mask.gather(1, order)
-
-
-class _Pattern:
-    """Sparsity pattern of the attention of one neighbour structure as CSR index tensors.
-
-    Rows are ``(agent, head)`` pairs ``r * heads + h``, columns ``(target, head)`` pairs
-    ``t * heads + h`` over the ``n_targets`` targets of :func:`neighbor_entries` (``rows``, or with
-    one graph ``rows + E``: the agents, then the dummy targets): a ``(rows * heads, n_targets *
-    heads)`` matrix with exactly ``E`` entries per row, their columns sorted and distinct, so
-    ``O(rows * heads * E)`` entries are stored; the values of a matrix on it are laid out as
-    ``(rows, heads, E)``. With dummy targets dense right-hand operands get zero rows for them
-    (:func:`_padded`) and products with the transposed matrix keep their first ``rows * heads`` rows.
-
-    The transposed pattern (rows by target, columns by source row) is needed only for gradients, so
-    it is built on first use, once: ``crow_t`` and ``col_t`` are its CSR index tensors and
-    ``transpose`` maps its values to their position in the values of the matrix itself. Acting and
-    target networks, which run without gradients, never build it.
-
-    :param targets: ``(rows, E)`` entry targets below ``n_targets`` (see :func:`neighbor_entries`).
-    :param heads: attention heads.
-    :param n_targets: number of targets.
-    """
-
-    def __init__(self, targets: Tensor, heads: int, n_targets: int) -> None:
-        rows, n_entries = targets.shape
-        self.targets, self.heads, self.n_targets = targets, heads, n_targets
-        self._head = torch.arange(heads, device=targets.device)
-        self.col = (targets.unsqueeze(1) * heads + self._head.view(1, heads, 1)).reshape(-1)
-        self.crow = torch.arange(0, rows * heads * n_entries + 1, n_entries, device=targets.device)
-        self.shape = (rows * heads, n_targets * heads)
-
-    @functools.cached_property
-    def _transposed(self) -> tuple[Tensor, Tensor, Tensor]:
-        """``(crow_t, col_t, transpose)``, built once."""
-        heads, head, n_entries = self.heads, self._head, self.targets.shape[1]
-        device = self.targets.device
-        target = self.targets.reshape(-1)  # entry e = r * E + k points at target[e]
-        order = torch.argsort(target, stable=True)  # by target, then by source row
-        count = torch.zeros(self.n_targets, dtype=torch.long, device=device).index_add_(
-            0, target, torch.ones_like(target)
-        )
-        first = torch.cumsum(count, 0) - count
-        sorted_target = target[order]
-        # Transposed row (t, h) holds the count[t] entries pointing at t, by increasing source row.
-        dest = (
-            ((heads - 1) * first[sorted_target] + torch.arange(order.numel(), device=device)).unsqueeze(1)
-            + head * count[sorted_target].unsqueeze(1)
-        ).reshape(-1)
-        source_row = (order // n_entries * heads).unsqueeze(1) + head
-        source = (source_row * n_entries + (order % n_entries).unsqueeze(1)).reshape(-1)
-        transpose = torch.empty_like(dest).scatter_(0, dest, source)
-        col_t = torch.empty_like(dest).scatter_(0, dest, source_row.reshape(-1))
-        crow_t = torch.zeros(self.n_targets * heads + 1, dtype=torch.long, device=device)
-        torch.cumsum(count.unsqueeze(1).expand(self.n_targets, heads).reshape(-1), 0, out=crow_t[1:])
-        return crow_t, col_t, transpose
-
-    @property
-    def crow_t(self) -> Tensor:
-        return self._transposed[0]
-
-    @property
-    def col_t(self) -> Tensor:
-        return self._transposed[1]
-
-    @property
-    def transpose(self) -> Tensor:
-        return self._transposed[2]
-
-
-def _sparse(crow: Tensor, col: Tensor, values: Tensor, shape: tuple[int, int]) -> Tensor:
-    """CSR matrix of ``shape`` with the given index tensors and flat ``values``.
-
-    The patterns have sorted, distinct columns in every row by construction; they are checked only
-    under ``torch.sparse.check_sparse_tensor_invariants()`` (the tests turn it on; checking reads
-    the indices on the host).
-    """
-    check = torch.sparse.check_sparse_tensor_invariants.is_enabled()
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", "Sparse CSR tensor support is in beta state")
-        return torch.sparse_csr_tensor(crow, col, values, shape, check_invariants=check)
-
-
-def _padded(pattern: _Pattern, dense: Tensor) -> Tensor:
-    """``dense`` ``(rows * heads, head_dim)`` with zero rows for the dummy targets appended:
-    ``((rows + E) * heads, head_dim)``, a right-hand operand of the matrices on ``pattern``; ``dense``
-    itself when the pattern has no dummy targets (several graphs)."""
-    extra = pattern.shape[1] - pattern.shape[0]
-    return dense if extra == 0 else torch.cat([dense, dense.new_zeros(extra, dense.shape[1])])
-
-
-def _matmul(pattern: _Pattern, values: Tensor, dense: Tensor, transposed: bool = False) -> Tensor:
-    """``M @ dense`` (or ``M^T @ dense``) for the matrix ``M`` with ``values`` ``(rows, heads, E)``
-    on ``pattern``; ``dense`` is ``((rows + E) * heads, head_dim)`` (see :func:`_padded`), or
-    ``(rows * heads, head_dim)`` if ``transposed``. :return: ``(rows * heads, head_dim)``."""
-    values = values.reshape(-1)
-    rows, columns = pattern.shape
-    if transposed:
-        matrix = _sparse(pattern.crow_t, pattern.col_t, values[pattern.transpose], (columns, rows))
-        return (matrix @ dense)[:rows]
-    return _sparse(pattern.crow, pattern.col, values, pattern.shape) @ dense
-
-
-def _sampled_dot(pattern: _Pattern, left: Tensor, right: Tensor) -> Tensor:
-    """Dot products ``left[row] . right[col]`` ``(rows * heads * E,)`` at the entries of ``pattern``;
-    ``left`` ``(rows * heads, head_dim)``, ``right`` ``((rows + E) * heads, head_dim)`` (see
-    :func:`_padded`)."""
-    zeros = left.new_zeros(pattern.col.numel())
-    return torch.sparse.sampled_addmm(
-        _sparse(pattern.crow, pattern.col, zeros, pattern.shape), left, right.t(), beta=0.0
-    ).values()
-
-
-class _NeighborAttention(torch.autograd.Function):
-    """Masked multi-head attention over neighbour entries as sparse (CSR) matrix products.
-
-    Logits are sampled dot products at the ``E`` entries of every row only (:class:`_Pattern`) and
-    the weighted sums of values are sparse-dense products, so nothing of size
-    ``(rows, E, heads, head_dim)`` is formed; the backward pass uses the transposed pattern for the
-    gradients of keys and values. Entries are in the canonical order of :func:`neighbor_entries`.
-
-    Entries may fall into several segments (the sender groups of heterogeneous attention): the
-    softmax then runs within each segment of a row separately and each segment gives its own
-    output, zero when the row has no entry in it. One segment is ordinary graph attention.
-    """
-
-    @staticmethod
-    def forward(
-        ctx, query: Tensor, key: Tensor, value: Tensor, pattern: _Pattern, segments: list[Tensor]
-    ) -> tuple[Tensor, Tensor]:
-        """``query``/``key``/``value`` ``(rows, heads, head_dim)``; ``segments``: one bool mask
-        ``(rows, E)`` per segment marking its entries (disjoint, never a dummy entry; entries in none
-        are masked out). Returns outputs ``(rows, n_segments, heads, head_dim)`` and attention weights
-        ``(rows, heads, E)`` (each segment of a row sums to one, or to zero if it is empty)."""
-        rows, heads, head_dim = query.shape
-        scaled_query = (query * head_dim**-0.5).reshape(-1, head_dim)
-        key, value = (_padded(pattern, tensor.reshape(-1, head_dim)) for tensor in (key, value))
-        logits = _sampled_dot(pattern, scaled_query, key).view(rows, heads, -1)
-        if len(segments) == 1:
-            weights = logits.masked_fill_(~segments[0].unsqueeze(1), -math.inf).softmax(dim=-1)
-            outputs = [_matmul(pattern, weights, value)]
-        else:
-            selections = [segment.unsqueeze(1).to(logits.dtype) for segment in segments]
-            weights = torch.zeros_like(logits)
-            for segment in segments:
-                segment_weights = logits.masked_fill(~segment.unsqueeze(1), -math.inf).softmax(dim=-1)
-                weights += segment_weights.nan_to_num_(0.0)  # a row without entries in the segment
-            outputs = [_matmul(pattern, weights * selection, value) for selection in selections]
-        out = torch.stack([output.view(rows, heads, head_dim) for output in outputs], dim=1)
-        ctx.save_for_backward(scaled_query, key, value, weights, *segments)
-        ctx.pattern = pattern
-        ctx.mark_non_differentiable(weights)
-        return out, weights
-
-    @staticmethod
-    def backward(ctx, grad_out: Tensor, _grad_weights: Tensor | None) -> tuple[Tensor | None, ...]:
-        scaled_query, key, value, weights, *segments = ctx.saved_tensors
-        pattern = ctx.pattern
-        rows, n_segments, heads, head_dim = grad_out.shape
-        grad_weights = torch.zeros_like(weights)  # d loss / d weight of every entry
-        weighted_sums = torch.zeros_like(weights)  # per entry: sum over its segment of weight * that
-        grad_value = torch.zeros_like(scaled_query)
-        for index, segment in enumerate(segments):
-            selection = segment.unsqueeze(1).to(weights.dtype) if n_segments > 1 else 1.0
-            segment_grad_out = grad_out[:, index].reshape(-1, head_dim)
-            segment_weights = weights * selection
-            dots = _sampled_dot(pattern, segment_grad_out, value).view(weights.shape) * selection
-            grad_weights += dots
-            weighted_sums += (segment_weights * dots).sum(dim=-1, keepdim=True) * selection
-            grad_value += _matmul(pattern, segment_weights, segment_grad_out, transposed=True)
-        grad_logits = weights * (grad_weights - weighted_sums)
-        grad_query = _matmul(pattern, grad_logits, key).mul_(head_dim**-0.5)
-        grad_key = _matmul(pattern, grad_logits, scaled_query, transposed=True)
-        shape = (rows, heads, head_dim)
-        return grad_query.view(shape), grad_key.view(shape), grad_value.view(shape), None, None
-
-
 def _check_positive(**sizes: int) -> None:
     for name, size in sizes.items():
         if size <= 0:
             raise ValueError(f"{name} must be positive, got {size}")
-
-
-class GraphBatch:
-    """A batch of graphs prepared once per forward pass and shared by the communication layers.
-
-    Build it once per batch of graphs and pass it to every network reading them (an actor and its
-    critics): the attention patterns are cached per head count, so networks of any head counts can
-    share it. With one group, preparing it and attending over it (forward and backward) never read
-    values of accelerator tensors on the host, so they never synchronise (neighbour values are
-    validated only on the CPU, see :func:`check_neighbors`). With several groups the rows of each
-    group are found with ``torch.nonzero`` and the group ids are validated, which synchronises.
-
-    Entries (``E = min(max_neighbors + 1, n_agents)`` per agent, see :func:`neighbor_entries`) are
-    held in canonical order: ``targets`` ``(rows, E)`` (``rows = batch * n_agents``), ``positions``
-    ``(rows, E)`` their list places, ``mask`` ``(rows, E)`` the entries taking part and ``columns``
-    ``(rows, E)`` the flat agent row of every entry (the agent itself where none takes part).
-
-    :param neighbors: ``(batch, n_agents, max_neighbors)`` agent indices within the same graph,
-        ``-1`` = no entry; an agent listed several times is one neighbour.
-    :param groups: ``(batch, n_agents)`` group id of every agent (``None``: all in group 0).
-    :param n_groups: number of agent groups the network has.
-    """
-
-    def __init__(self, neighbors: Tensor, groups: Tensor | None = None, n_groups: int = 1) -> None:
-        self.batch, self.n_agents = neighbors.shape[:2]
-        self.rows = self.batch * self.n_agents
-        self.n_groups = n_groups
-        check_neighbors(neighbors, self.n_agents)
-        self.list_width = neighbors.shape[2]
-        self.targets, self.positions, self.mask = neighbor_entries(neighbors, self.n_agents)
-        self.n_targets = self.rows if self.batch > 1 else self.rows + self.targets.shape[1]
-        own = torch.arange(self.rows, device=neighbors.device).unsqueeze(1)
-        self.columns = torch.where(self.mask, self.targets, own)
-        self._patterns: dict[int, _Pattern] = {}
-        self.group_rows: list[Tensor] | None = None
-        self.group_inverse: Tensor | None = None
-        self.row_groups: Tensor | None = None
-        self.column_groups: Tensor | None = None
-        if n_groups > 1:
-            self._prepare_groups(groups)
-
-    def _prepare_groups(self, groups: Tensor | None) -> None:
-        if groups is None or tuple(groups.shape) != (self.batch, self.n_agents):
-            shape = None if groups is None else tuple(groups.shape)
-            raise ValueError(
-                f"A network of {self.n_groups} agent groups needs groups of shape "
-                f"{(self.batch, self.n_agents)}, got {shape}."
-            )
-        flat = groups.reshape(-1).long()
-        if flat.numel() and (int(flat.min()) < 0 or int(flat.max()) >= self.n_groups):
-            raise ValueError(f"group ids must lie in [0, {self.n_groups - 1}].")
-        self.row_groups = flat
-        self.group_rows = [torch.nonzero(flat == group).squeeze(1) for group in range(self.n_groups)]
-        self.group_inverse = torch.argsort(torch.cat(self.group_rows))
-        self.column_groups = flat[self.columns]  # (rows, E) group of every entry
-
-    def list_weights(self, weights: Tensor) -> Tensor:
-        """Attention weights ``(rows, heads, E)`` in canonical order laid out over the lists:
-        ``(rows, heads, list_width + 1)``, column 0 the agent itself, ``1 + m`` list entry ``m``, zero
-        at the entries taking no part."""
-        positions = self.positions.unsqueeze(1).expand(-1, weights.shape[1], -1)
-        return weights.new_zeros(*weights.shape[:2], self.list_width + 1).scatter_(2, positions, weights)
-
-    def pattern(self, heads: int) -> _Pattern:
-        """CSR pattern of the attention with ``heads`` heads (built once per head count)."""
-        if heads not in self._patterns:
-            self._patterns[heads] = _Pattern(self.targets, heads, self.n_targets)
-        return self._patterns[heads]
-
-    def segments(self, across_groups: bool) -> list[Tensor]:
-        """Bool masks ``(rows, E)`` of the entries attended together: one per sender group
-        (``across_groups``), or a single one over the neighbours of the agent's own group."""
-        if self.n_groups == 1:
-            return [self.mask]
-        if across_groups:
-            return [self.mask & (self.column_groups == group) for group in range(self.n_groups)]
-        return [self.mask & (self.column_groups == self.row_groups.unsqueeze(1))]
-
-
-def _as_graph(graph: GraphBatch | Tensor) -> GraphBatch:
-    return graph if isinstance(graph, GraphBatch) else GraphBatch(graph)
 
 
 class Grouped(nn.Module):
@@ -472,13 +146,13 @@ class GraphAttention(nn.Module):
             agent listed before, or not attended); with several sender groups the weights of each
             group sum to one.
         """
-        graph = _as_graph(graph)
+        graph = as_graph_batch(graph)
         batch, n_agents, _ = x.shape
         query, key, value = self.project(x, graph)
         segments = graph.segments(self.across_groups)
         dtype = torch.promote_types(query.dtype, torch.float32)  # bfloat16 under autocast -> float32
         with torch.autocast(x.device.type, enabled=False):  # the sparse kernels run in full precision
-            mixed, weights = _NeighborAttention.apply(
+            mixed, weights = NeighborAttention.apply(
                 query.to(dtype), key.to(dtype), value.to(dtype), graph.pattern(self.n_heads), segments
             )
         out = self.output(mixed.reshape(batch, n_agents, -1), graph=graph)
@@ -533,7 +207,7 @@ class MeanCommunication(nn.Module):
     def forward(self, x: Tensor, graph: GraphBatch | Tensor) -> Tensor:
         """:param x: ``(batch, n_agents, in_dim)``; :param graph: :class:`GraphBatch` or neighbour
         lists ``(batch, n_agents, max_neighbors)``. :return: ``(batch, n_agents, out_dim)``."""
-        graph = _as_graph(graph)
+        graph = as_graph_batch(graph)
         batch, n_agents, in_dim = x.shape
         own = torch.arange(graph.rows, device=x.device).unsqueeze(1)
         others = (graph.mask & (graph.columns != own)).unsqueeze(-1).to(x.dtype)  # (rows, E, 1)
@@ -743,7 +417,7 @@ def checked_features_dim(extractor: nn.Module, obs_shape: tuple[int, ...]) -> in
     missing ``features_dim``) names the extractor and what it got wrong."""
     name = type(extractor).__name__
     features_dim = getattr(extractor, "features_dim", None)
-    if not isinstance(features_dim, int) or isinstance(features_dim, bool) or features_dim < 1:
+    if not is_integer(features_dim) or features_dim < 1:
         raise TypeError(
             f"The features extractor {name} needs a positive integer features_dim attribute (the width of "
             f"its output, as SB3's BaseFeaturesExtractor has), got {features_dim!r}."

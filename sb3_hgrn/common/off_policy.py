@@ -28,13 +28,7 @@ from stable_baselines3.common.utils import (
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_hgrn.common import torch_layers
-from sb3_hgrn.common.arguments import (
-    argument_hints,
-    check_argument_types,
-    is_integer,
-    is_number,
-    named_parameters,
-)
+from sb3_hgrn.common.arguments import argument_hints, check_argument_types, named_parameters
 from sb3_hgrn.common.buffers import GraphReplayBuffer, GraphSamples
 from sb3_hgrn.common.checks import check_rewards
 from sb3_hgrn.common.files import (
@@ -50,6 +44,7 @@ from sb3_hgrn.common.policies import GraphPolicy, check_graph_spaces, check_poli
 from sb3_hgrn.common.safe_load import add_plain_record, read_saved_pickle, saved_entries, write_zip
 from sb3_hgrn.common.temperature import TemperatureController, group_means, target_entropy
 from sb3_hgrn.common.vec_env import make_graph_vec_env
+from sb3_hgrn.validation import is_integer, is_number
 
 TRAINING_STATE_KEYS = frozenset(
     "num_timesteps env last_obs last_episode_starts last_hidden team_episodes "

@@ -12,11 +12,13 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
-from sb3_hgrn.common.arguments import argument_hints, check_argument_types, is_number, named_parameters
+from sb3_hgrn.common.arguments import argument_hints, check_argument_types, named_parameters
+from sb3_hgrn.common.attention import GraphBatch
 from sb3_hgrn.common.averaging import polyak_average
 from sb3_hgrn.common.checks import check_graph_batch, check_state, observation_problem, slot_name
-from sb3_hgrn.common.hgrn import HGRN, GraphBatch
+from sb3_hgrn.common.hgrn import HGRN
 from sb3_hgrn.common.temperature import EntropyTemperature
+from sb3_hgrn.validation import is_number
 
 GraphObs = dict[str, th.Tensor]
 NO_AGENT_COUNT = "The policy does not know n_agents yet; attach a graph env to the model."

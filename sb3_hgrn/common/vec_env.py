@@ -35,11 +35,12 @@ from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
 from sb3_hgrn.common.checks import observation_problem, slot_name
-from sb3_hgrn.common.controllers import resolve_model_paths
 from sb3_hgrn.common.safe_load import load_pickle
+from sb3_hgrn.common.saved_controllers import resolve_model_paths
 from sb3_hgrn.envs.base import GraphParallelEnv
 from sb3_hgrn.envs.graph import living_neighbors
 from sb3_hgrn.envs.wrappers import as_parallel_env
+from sb3_hgrn.validation import is_integer
 
 REGISTERED_ENVS = ("surviving_v0", "uav_mbs_v0", "pursuit_v0", "ctc_v0")
 NEIGHBOR_INDEX_HIGH = np.iinfo(np.int32).max
@@ -609,9 +610,9 @@ def make_graph_vec_env(
     :param env_kwargs: keyword arguments for the env constructor. The saved models' paths among them
         that the env's module names with ``model_paths`` (Pursuit's ``prey_controller="runs/prey.zip"``)
         are loaded here, once, as controllers shared by the copies (see
-        :func:`~sb3_hgrn.common.controllers.resolve_model_paths`).
+        :func:`~sb3_hgrn.common.saved_controllers.resolve_model_paths`).
     """
-    if not isinstance(n_envs, int | np.integer) or isinstance(n_envs, bool) or n_envs < 1:
+    if not is_integer(n_envs) or n_envs < 1:
         raise ValueError(f"n_envs must be a positive integer (env copies), got {n_envs!r}.")
     env_fn = _resolve_env_fn(env, n_envs, bool(env_kwargs))
     kwargs = resolve_model_paths(env_fn, dict(env_kwargs or {}))

@@ -8,7 +8,7 @@
   positions (:class:`~sb3_hgrn.envs.wrappers.GraphFromPositions`) for any PettingZoo env, and
   :class:`~sb3_hgrn.envs.wrappers.DrivenAgents`, which lets one team of it learn, and
   :class:`~sb3_hgrn.envs.wrappers.TeamFigures`, which reports its episodes' figures;
-- :mod:`~sb3_hgrn.envs.controllers`: what drives the agents that do not learn (random, scripted or
+- :mod:`~sb3_hgrn.envs.driven_sides`: what drives the agents that do not learn (random, scripted or
   a model);
 - :mod:`~sb3_hgrn.envs.rendering`: the pygame window of ``render_mode="human"``.
 

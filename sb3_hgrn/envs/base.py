@@ -8,8 +8,6 @@ calls the array methods directly and never builds per-agent dicts.
 
 from __future__ import annotations
 
-import math
-import numbers
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
@@ -18,6 +16,7 @@ import numpy as np
 from pettingzoo import ParallelEnv
 
 from sb3_hgrn.envs.rendering import PygameWindow
+from sb3_hgrn.validation import check_integer
 
 
 class AgentGroup(NamedTuple):
@@ -26,34 +25,6 @@ class AgentGroup(NamedTuple):
     name: str
     observation_space: gym.spaces.Box  # 1-D (padded to the widest group), or the shared n-D shape
     action_space: gym.spaces.Discrete
-
-
-def check_integer(name: str, value: Any, low: int, high: int | None = None, why: str = "") -> None:
-    """Raise a ``ValueError`` naming ``name``, the valid range and ``value`` unless ``value`` is a
-    Python or numpy integer (not a bool) in ``low..high`` (``>= low`` when ``high`` is ``None``);
-    ``why`` says where the bounds come from."""
-    integer = isinstance(value, int | np.integer) and not isinstance(value, bool)
-    if integer and low <= value and (high is None or value <= high):
-        return
-    valid = f">= {low}" if high is None else f"in {low}..{high}"
-    raise ValueError(f"{name} must be an integer {valid}{f' ({why})' if why else ''}, got {value!r}.")
-
-
-def check_number(name: str, value: Any, low: float | None = None, strict: bool = False) -> None:
-    """Raise a ``ValueError`` naming ``name``, the valid range and ``value`` unless ``value`` is a real
-    number (not a bool, not NaN) ``>= low`` (``> low`` when ``strict``; any when ``low`` is ``None``)."""
-    number = isinstance(value, numbers.Real) and not isinstance(value, bool) and not math.isnan(value)
-    if number and (low is None or (value > low if strict else value >= low)):
-        return
-    valid = "" if low is None else f" {'>' if strict else '>='} {low}"
-    raise ValueError(f"{name} must be a number{valid}, got {value!r}.")
-
-
-def check_flag(name: str, value: Any) -> None:
-    """Raise a ``ValueError`` naming ``name`` and ``value`` unless ``value`` is ``True`` or ``False``
-    (a string such as ``"no"`` would otherwise count as true)."""
-    if not isinstance(value, bool | np.bool_):
-        raise ValueError(f"{name} must be true or false, got {value!r}.")
 
 
 def check_agent_count(name: str, count: Any, maximum: int | None = None, why: str = "") -> None:

@@ -16,11 +16,10 @@ from sb3_hgrn.envs.base import (
     GraphParallelEnv,
     binary_table,
     check_agent_count,
-    check_integer,
-    check_number,
     padded_observation_space,
 )
 from sb3_hgrn.envs.graph import grid_neighbors
+from sb3_hgrn.validation import check_integer, check_number
 
 HUNTER, RED_BANK, BLUE_BANK = 0, 1, 2  # group ids
 GROUP_NAMES = ("hunter", "red_bank", "blue_bank")

@@ -15,11 +15,12 @@ are ``n_agents`` wide by definition, so its output and cost grow with the square
 
 from __future__ import annotations
 
-import numbers
 from collections.abc import Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
+
+from sb3_hgrn.validation import is_integer, is_number
 
 
 class PositionGraph:
@@ -48,11 +49,11 @@ class PositionGraph:
         max_neighbors: int | None = None,
         world_size: float | Sequence[float] | None = None,
     ):
-        if not _is_count(n_agents) or n_agents < 1:
+        if not is_integer(n_agents) or n_agents < 1:
             raise ValueError(f"n_agents must be a positive integer, got {n_agents!r}.")
         if k is not None and radius is not None:
             raise ValueError("Pass k (k nearest neighbours) or radius (neighbours within it), not both.")
-        if k is not None and (not _is_count(k) or k < 1):
+        if k is not None and (not is_integer(k) or k < 1):
             raise ValueError(f"k must be a positive integer (neighbours besides the agent), got {k!r}.")
         if radius is not None and not _is_distance(radius):
             raise ValueError(f"radius must be a finite number >= 0, got {radius!r}.")
@@ -61,7 +62,7 @@ class PositionGraph:
                 "max_neighbors is the list width of radius mode; with k the lists are k + 1 wide and "
                 "the full graph's n_agents wide."
             )
-        if radius is not None and (not _is_count(max_neighbors) or max_neighbors < 1):
+        if radius is not None and (not is_integer(max_neighbors) or max_neighbors < 1):
             raise ValueError(
                 f"radius needs max_neighbors, a positive integer: the list width, the agent itself "
                 f"included; got {max_neighbors!r}."
@@ -183,9 +184,4 @@ def _world_size(world_size: float | Sequence[float] | None) -> np.ndarray | None
 
 def _is_distance(value: object) -> bool:
     """Whether ``value`` is a finite real number ``>= 0``."""
-    return isinstance(value, numbers.Real) and bool(np.isfinite(value)) and value >= 0
-
-
-def _is_count(value: object) -> bool:
-    """Whether ``value`` is an integer (bools excluded)."""
-    return isinstance(value, int | np.integer) and not isinstance(value, bool)
+    return is_number(value) and bool(np.isfinite(value)) and value >= 0

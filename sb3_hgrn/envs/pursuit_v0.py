@@ -11,9 +11,10 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from sb3_hgrn.envs.base import GraphParallelEnv, check_flag, check_integer, check_number
-from sb3_hgrn.envs.controllers import Controller, DrivenSide, controller_paths, make_controller
+from sb3_hgrn.envs.base import GraphParallelEnv
+from sb3_hgrn.envs.driven_sides import Controller, DrivenSide, controller_paths, make_controller
 from sb3_hgrn.envs.graph import grid_neighbors
+from sb3_hgrn.validation import check_flag, check_integer, check_number
 
 SIDES = ("predator", "prey")
 SCRIPTED_CONTROLLERS = {"predator": ("random",), "prey": ("random", "evader")}
@@ -57,7 +58,7 @@ class PursuitEnv(GraphParallelEnv):
     first, ties by lower index, at most ``max_neighbors``), see
     :func:`sb3_hgrn.envs.graph.grid_neighbors`.
 
-    Controllers of the other side, built by :func:`sb3_hgrn.envs.controllers.make_controller` (as
+    Controllers of the other side, built by :func:`sb3_hgrn.envs.driven_sides.make_controller` (as
     for :class:`~sb3_hgrn.envs.wrappers.DrivenAgents`): ``"random"`` (uniform actions), for prey
     ``"evader"`` (:func:`evader_actions`), a function ``(observations, env) -> actions`` (the
     controlled agents ``prey_0``, ... or ``predator_0``, ... by name, and this env), or a model: any
@@ -70,7 +71,7 @@ class PursuitEnv(GraphParallelEnv):
     optional: ``bind(observation_space, n_agents)``, called once here with the controlled side's
     observation ``Box`` and agent count (to check that the model fits that side and size it to it),
     and ``seed(seed)``, called with an int from the env's generator before every ``predict``. The env
-    loads no saved model: ``sb3_hgrn.common.controllers.ModelController`` wraps a loaded sb3_hgrn
+    loads no saved model: ``sb3_hgrn.common.saved_controllers.ModelController`` wraps a loaded sb3_hgrn
     model or a saved one's path and has both methods (its samples repeat with the env's seed), and
     :func:`sb3_hgrn.make_graph_vec_env` and the command line turn a path given in ``env_kwargs``
     into one (see :func:`model_paths`). :attr:`controller` is the controller as given (its name where

@@ -11,15 +11,9 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from sb3_hgrn.envs.base import (
-    GraphParallelEnv,
-    binary_table,
-    check_agent_count,
-    check_flag,
-    check_integer,
-    check_number,
-)
+from sb3_hgrn.envs.base import GraphParallelEnv, binary_table, check_agent_count
 from sb3_hgrn.envs.graph import grid_neighbors
+from sb3_hgrn.validation import check_flag, check_integer, check_number
 
 N_ACTIONS = 5
 EAT = 4

@@ -11,8 +11,9 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from sb3_hgrn.envs.base import GraphParallelEnv, binary_table, check_agent_count, check_integer, check_number
+from sb3_hgrn.envs.base import GraphParallelEnv, binary_table, check_agent_count
 from sb3_hgrn.envs.graph import grid_neighbors
+from sb3_hgrn.validation import check_integer, check_number
 
 # Space and discretisation: positions in [0, 1]^2 map to cells int(p * 200 + 13), clipped to [13, 212],
 # on a 226 x 226 raster whose 13-cell margin is obstacle.

@@ -22,7 +22,7 @@ from pettingzoo import AECEnv, ParallelEnv
 from pettingzoo.utils import BaseParallelWrapper
 from pettingzoo.utils.conversions import aec_to_parallel
 
-from sb3_hgrn.envs.controllers import DrivenSide, make_controller
+from sb3_hgrn.envs.driven_sides import DrivenSide, make_controller
 from sb3_hgrn.envs.graph import living_neighbors, subgraph
 from sb3_hgrn.envs.position_graph import PositionGraph
 
@@ -202,14 +202,14 @@ class DrivenAgents(ParallelEnv):
     actions of the driven agents still in the inner env's ``agents`` (a gone one is not asked), and
     the inner env steps with all actions at once.
 
-    Controllers (see :mod:`sb3_hgrn.envs.controllers`):
+    Controllers (see :mod:`sb3_hgrn.envs.driven_sides`):
 
     - ``"random"``: uniform actions from each driven agent's ``Discrete`` action space, drawn from
       this env's generator;
     - a function ``controller(observations, env) -> actions``: ``observations`` holds the living
       driven agents' observations by name, ``env`` is the inner env, and ``actions`` must hold one
       action for each of them (by name) and nothing else;
-    - a model with SB3's ``predict`` (``sb3_hgrn.common.controllers.ModelController`` of an sb3_hgrn
+    - a model with SB3's ``predict`` (``sb3_hgrn.common.saved_controllers.ModelController`` of an sb3_hgrn
       model, or of a saved one's path, loaded on the learner side: this env loads no file). The
       driven agents form one graph, in the fixed slots of :attr:`driven_agents`: the model gets
       ``{"obs": (n_driven, *obs_shape), "neighbors": (n_driven, K) int32}``. A gone agent keeps its

@@ -17,6 +17,7 @@ from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback
 
 from sb3_hgrn.common.files import save_atomically, save_model_atomically, write_text_atomically
 from sb3_hgrn.common.vec_env import UnpicklableEnvError
+from sb3_hgrn.validation import is_integer
 
 TEAM_RETURNS_FILE = "team_returns.csv"
 
@@ -149,7 +150,7 @@ class AtomicCheckpointCallback(CheckpointCallback):
         keep: int = 0,
         verbose: int = 0,
     ):
-        if not isinstance(keep, int) or isinstance(keep, bool) or keep < 0:
+        if not is_integer(keep) or keep < 0:
             raise ValueError(f"keep must be a whole number >= 0 (checkpoints kept, 0: all), got {keep!r}.")
         super().__init__(
             save_freq,

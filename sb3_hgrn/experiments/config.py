@@ -49,10 +49,10 @@ from typing import Any
 
 import yaml
 
-from sb3_hgrn.common.arguments import is_integer, is_number
 from sb3_hgrn.common.off_policy import check_model_arguments
 from sb3_hgrn.common.vec_env import REGISTERED_ENVS
 from sb3_hgrn.presets import PRESETS, merge
+from sb3_hgrn.validation import is_flag, is_integer, is_number
 
 BUDGETS = ("ci", "cpu", "paper")
 """Budgets every config file defines: toy sizes for tests, a 2-core CPU sweep, the paper's schedule."""
@@ -222,7 +222,7 @@ def _check_budget_values(section: dict[str, Any], where: str, complete: bool) ->
         given = key in section or (complete and key in REQUIRED_BUDGET_FIELDS)
         if given and not (is_integer(section.get(key)) and section[key] >= 1):
             raise ConfigError(f"{where}: {key} must be a positive integer, got {section.get(key)!r}.")
-    if not isinstance(section.get("paper", False), bool):
+    if not is_flag(section.get("paper", False)):
         raise ConfigError(f"{where}: paper must be true or false, got {section['paper']!r}.")
     epsilons = section.get("eval_epsilons") or []
     if not isinstance(epsilons, list) or not all(is_number(eps) and 0 <= eps <= 1 for eps in epsilons):
@@ -231,7 +231,7 @@ def _check_budget_values(section: dict[str, Any], where: str, complete: bool) ->
 
 def check_keep_checkpoints(value: Any, name: str) -> int:
     """``value`` as a count of checkpoints to keep, or :class:`ConfigError` naming ``name``."""
-    if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+    if not is_integer(value) or value < 0:
         raise ConfigError(
             f"{name} must be a whole number >= 0 (the newest checkpoints kept, 0: all), got {value!r}."
         )

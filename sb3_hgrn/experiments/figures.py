@@ -46,17 +46,17 @@ from sb3_hgrn.experiments.config import (
     check_preset_name,
     load_hyperparams,
 )
+from sb3_hgrn.experiments.jobs import Job, check_budget_of_folder, plan_jobs, run_jobs, train_args
 from sb3_hgrn.experiments.paper import ENV_TITLES, PRESET_TITLES
-from sb3_hgrn.experiments.runs import (
+from sb3_hgrn.experiments.run_folder import (
     CONFIG_FILE,
     MODEL_FILE,
     TENSORBOARD_DIR,
-    evaluate_run,
     figure_root,
     read_eval,
     write_json,
 )
-from sb3_hgrn.experiments.table1 import Job, check_budget_of_folder, plan_jobs, run_jobs, train_args
+from sb3_hgrn.experiments.runs import evaluate_run
 from sb3_hgrn.presets import HGAT_TWINS, PRESETS, TABLE1
 
 FIGURES = {

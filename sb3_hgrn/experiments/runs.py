@@ -1,57 +1,27 @@
-"""One training run into one folder; evaluating and rendering saved runs.
-
-A run folder (``<root>/<env>/<preset>/seed_<seed>/``, a user env ``MODULE:ATTR`` as ``MODULE-ATTR``)
-holds::
-
-    config.yml          the resolved configuration (env, env_kwargs, n_envs, preset, algorithm kwargs,
-                        budget, seed, versions)
-    tensorboard/        SB3's TensorBoard logs (when tensorboard is installed)
-    team_returns.csv    one "r,l,t" row per training team episode, after a "#{json}" line (as SB3's Monitor)
-    checkpoints/        model_<agent-steps>_steps.zip every --save-freq agent-steps (optional) with
-                        model_training_state_<agent-steps>_steps.pkl (env copies, last observation,
-                        recurrent and random states), with --save-replay-buffer also
-                        model_replay_buffer_<agent-steps>_steps.pkl
-    model.zip           the final model
-    eval.json           the final evaluation; its presence marks the run as complete
-    .lock, .lock.pid    the lock of the process working in the folder, and its pid
-
-Every file but ``team_returns.csv`` (appended to row by row) is written atomically; the temporary
-file of a write cut short by a kill is removed when a run starts in the folder again. No model is
-ever deleted here: ``--overwrite`` moves an old run to ``<folder>.replaced-<UTC time>/``, which is
-kept, a damaged model zip is renamed to ``<name>.damaged-<UTC time>.zip`` beside it, and a run killed
-after saving ``model.zip`` but before writing ``eval.json`` is evaluated, not trained again.
-"""
+"""Training a run into its folder (see :mod:`sb3_hgrn.experiments.run_folder` for its files), loading
+and evaluating saved runs."""
 
 from __future__ import annotations
 
-import importlib
 import inspect
-import itertools
-import json
 import operator
 import os
 import pickle
-import re
-import shutil
 import sys
 import time
 import warnings
-from collections.abc import Collection
 from dataclasses import replace
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
-import numpy as np
 import yaml
 from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_hgrn.common.buffers import GraphReplayBuffer
-from sb3_hgrn.common.evaluation import RandomGraphPolicy, evaluate_graph_policy
+from sb3_hgrn.common.evaluation import RandomGraphPolicy
 from sb3_hgrn.common.files import (
-    DamagedModelFileError,
     check_model_file,
     describe_saved_model,
-    model_file_path,
     remove_temporary_files,
     save_model_atomically,
     saved_policy_module,
@@ -70,238 +40,27 @@ from sb3_hgrn.experiments.callbacks import (
 from sb3_hgrn.experiments.config import (
     ConfigError,
     RunConfig,
-    check_env_name,
-    env_folder_name,
     is_env_spec,
     load_env_factory,
 )
 from sb3_hgrn.experiments.lock import RunLock
+from sb3_hgrn.experiments.policy_evaluation import EpsilonRandomPolicy, evaluate_model
+from sb3_hgrn.experiments.run_folder import (
+    CHECKPOINT_DIR,
+    CONFIG_FILE,
+    EVAL_FILE,
+    MODEL_FILE,
+    TENSORBOARD_DIR,
+    locate_run,
+    plain,
+    prepare_run_folder,
+    write_json,
+)
+from sb3_hgrn.experiments.trust import check_stored_env, check_stored_model_paths
 from sb3_hgrn.presets import PRESETS, make_model, merge, preset_kwargs
 
-CONFIG_FILE = "config.yml"
-MODEL_FILE = "model.zip"
-EVAL_FILE = "eval.json"
-CHECKPOINT_DIR = "checkpoints"
-TENSORBOARD_DIR = "tensorboard"
 EVAL_SEED_OFFSET = 1000
 """Evaluation envs are seeded with ``seed + 1000`` so they never repeat the training episodes."""
-
-
-def run_folder(root: str | os.PathLike, env: str, preset: str, seed: int) -> Path:
-    """``<root>/<env>/<preset>/seed_<seed>``, ``<env>`` as :func:`env_folder_name` writes it."""
-    return Path(root) / env_folder_name(env) / preset / f"seed_{seed}"
-
-
-def figure_root(folder: str | os.PathLike, name: str) -> Path:
-    """Where figure ``name`` keeps its runs: ``<folder>/figures/<name>``, except the transfer figure,
-    whose runs are Table 1's Surviving runs (the same budget, presets and seeds) in ``<folder>/table1``,
-    so ``reproduce table1`` and ``figure transfer`` share them."""
-    return Path(folder) / "table1" if name == "transfer" else Path(folder) / "figures" / name
-
-
-def read_eval(folder: str | os.PathLike) -> dict[str, Any] | None:
-    """The run's ``eval.json`` if it is complete, else ``None``."""
-    path = Path(folder) / EVAL_FILE
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    return data if isinstance(data, dict) and data.get("completed") else None
-
-
-def write_json(path: Path, data: dict[str, Any]) -> None:
-    """Write ``data`` atomically (a killed process never leaves half a file)."""
-    write_text_atomically(path, json.dumps(data, indent=2) + "\n")
-
-
-def _checkpoints(folder: Path) -> list[Path]:
-    """The checkpoints in ``folder/checkpoints``, most agent-steps first."""
-    steps = {}
-    for path in (folder / CHECKPOINT_DIR).glob("*_steps.zip"):
-        match = re.search(r"_(\d+)_steps\.zip$", path.name)
-        if match:
-            steps[path] = int(match.group(1))
-    return sorted(steps, key=steps.__getitem__, reverse=True)
-
-
-def _first_good(paths: list[Path]) -> Path | None:
-    """The first of ``paths`` that is a whole model zip; every damaged one before it is skipped with
-    a warning."""
-    for path in paths:
-        try:
-            check_model_file(path)
-        except DamagedModelFileError as error:
-            warnings.warn(f"Skipping {error}", stacklevel=3)
-            continue
-        return path
-    return None
-
-
-RUN_ENTRIES = (CONFIG_FILE, MODEL_FILE, EVAL_FILE, TEAM_RETURNS_FILE, CHECKPOINT_DIR, TENSORBOARD_DIR)
-"""What a run writes into its folder (other files, e.g. a sweep's ``train.log``, are not the run's)."""
-_MISSING = object()
-
-
-UNCOMPARED_KEYS = ("extra", "keep_checkpoints")
-"""Top-level keys of ``config.yml`` that may change when a run resumes: ``extra`` records versions
-and the command line, ``keep_checkpoints`` how many checkpoints stay on disk; neither changes what the
-run computes."""
-
-
-def config_differences(stored: dict[str, Any], current: dict[str, Any], prefix: str = "") -> list[str]:
-    """Dotted keys whose values differ between two configurations (the top-level
-    :data:`UNCOMPARED_KEYS` are ignored)."""
-    differences = []
-    for key in dict.fromkeys([*stored, *current]):
-        if not prefix and key in UNCOMPARED_KEYS:
-            continue
-        old, new = stored.get(key, _MISSING), current.get(key, _MISSING)
-        if isinstance(old, dict) and isinstance(new, dict):
-            differences += config_differences(old, new, f"{prefix}{key}.")
-        elif old != new:
-            differences.append(f"{prefix}{key}")
-    return differences
-
-
-def _describe_differences(stored: dict[str, Any], current: dict[str, Any], keys: list[str]) -> str:
-    """``key (stored A, now B)`` for every differing dotted key."""
-
-    def value(data: Any, key: str) -> str:
-        for part in key.split("."):
-            data = data.get(part, _MISSING)
-        return "missing" if data is _MISSING else repr(data)
-
-    return "; ".join(f"{key} (stored {value(stored, key)}, now {value(current, key)})" for key in keys)
-
-
-def _stored_config(folder: Path) -> dict[str, Any] | None:
-    """The folder's ``config.yml`` as a mapping, ``None`` if it is missing or unreadable."""
-    try:
-        data = yaml.safe_load((folder / CONFIG_FILE).read_text(encoding="utf-8"))
-    except (OSError, yaml.YAMLError):
-        return None
-    return data if isinstance(data, dict) else None
-
-
-def _has_run(folder: Path) -> bool:
-    """Whether ``folder`` holds any file a run writes."""
-    return any((folder / name).exists() for name in RUN_ENTRIES)
-
-
-def _clear_logs(folder: Path) -> None:
-    """Remove the logs of a run killed before it saved any model, which starts again from scratch:
-    its ``config.yml``, ``eval.json``, ``team_returns.csv`` and ``tensorboard/``. Models (``model.zip``,
-    ``checkpoints/``) are not touched; other files, e.g. a sweep's log, stay."""
-    for name in (CONFIG_FILE, EVAL_FILE, TEAM_RETURNS_FILE):
-        (folder / name).unlink(missing_ok=True)
-    shutil.rmtree(folder / TENSORBOARD_DIR, ignore_errors=True)
-
-
-def _aside_path(path: Path, label: str) -> Path:
-    """A free name beside ``path``: ``<stem>.<label>-<UTC time>[-<i>]<suffix>``
-    (``seed_0`` -> ``seed_0.replaced-20261201T161500Z``, ``model.zip`` -> ``model.damaged-...zip``)."""
-    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-    names = (
-        path.with_name(f"{path.stem}.{label}-{stamp}{f'-{index}' if index else ''}{path.suffix}")
-        for index in itertools.count()
-    )
-    return next(aside for aside in names if not aside.exists())
-
-
-def move_run_aside(folder: Path) -> Path | None:
-    """Move the run files of ``folder`` into ``<folder>.replaced-<UTC time>/`` beside it (other files
-    stay); returns that folder, ``None`` when there was nothing to move. The folder is kept."""
-    if not _has_run(folder):
-        return None
-    aside = _aside_path(folder, "replaced")
-    aside.mkdir(parents=True)
-    for name in RUN_ENTRIES:
-        if (folder / name).exists():
-            os.rename(folder / name, aside / name)  # aside is new and empty: nothing is replaced
-    return aside
-
-
-def _set_damaged_aside(path: Path) -> None:
-    """Rename the damaged model zip ``path`` to ``<stem>.damaged-<UTC time>.zip`` beside it, with a
-    warning: kept for inspection, out of the way of the files a run writes."""
-    aside = _aside_path(path, "damaged")
-    os.rename(path, aside)
-    warnings.warn(f"Renamed the damaged model file {path} to {aside.name}", stacklevel=3)
-
-
-def _finished_model(folder: Path) -> Path | None:
-    """The folder's ``model.zip`` if it is whole: a run that saved its final model (a damaged one is
-    set aside, see :func:`_set_damaged_aside`)."""
-    path = folder / MODEL_FILE
-    if not path.is_file():
-        return None
-    try:
-        check_model_file(path)
-    except DamagedModelFileError:
-        _set_damaged_aside(path)
-        return None
-    return path
-
-
-def _resumable_checkpoint(folder: Path) -> Path | None:
-    """The newest whole checkpoint of ``folder``; the damaged ones newer than it are set aside (see
-    :func:`_set_damaged_aside`), so the resumed run never writes over them."""
-    checkpoints = _checkpoints(folder)
-    checkpoint = _first_good(checkpoints)
-    for damaged in checkpoints[: checkpoints.index(checkpoint) if checkpoint else len(checkpoints)]:
-        _set_damaged_aside(damaged)
-    return checkpoint
-
-
-class RunStart(NamedTuple):
-    """How a run starts in its folder (see :func:`prepare_run_folder`)."""
-
-    model_file: Path | None
-    """The model to load (``None``: a fresh one): the checkpoint to resume, or the final model."""
-    finished: bool
-    """``model_file`` is the run's final ``model.zip``: the run is evaluated, not trained further."""
-    moved_aside: Path | None
-    """Where ``--overwrite`` moved the old run (kept), ``None`` if it did not."""
-
-
-def prepare_run_folder(folder: Path, config: RunConfig, overwrite: bool) -> RunStart:
-    """Decide how a run starts in ``folder``.
-
-    With ``overwrite`` an old run is moved aside (:func:`move_run_aside`). Otherwise a complete run
-    is refused, a run of another configuration is refused naming the differing keys, and a run of
-    the same configuration goes on: with a whole ``model.zip`` (killed during its final evaluation)
-    it is evaluated, else it resumes from its latest whole checkpoint, else (killed before its first)
-    it starts again, its logs cleared. No model is deleted: damaged ones are renamed aside.
-    """
-    if overwrite:
-        return RunStart(None, False, move_run_aside(folder))
-    if read_eval(folder) is not None:
-        raise ConfigError(
-            f"{folder} already holds a completed run ({EVAL_FILE}); pass --overwrite to redo it "
-            "(the old run is moved aside)."
-        )
-    if not _has_run(folder):
-        return RunStart(None, False, None)
-    stored, current = _stored_config(folder), _plain(config.to_dict())
-    if stored is None:
-        raise ConfigError(
-            f"{folder} holds a run without a readable {CONFIG_FILE}; pass --overwrite to replace it "
-            "(the old run is moved aside)."
-        )
-    differences = config_differences(stored, current)
-    if differences:
-        raise ConfigError(
-            f"{folder} holds a run of another configuration, refusing to resume it: "
-            f"{_describe_differences(stored, current, differences)}. Pass --overwrite to replace it "
-            "(the old run is moved aside), or use another --folder."
-        )
-    finished = _finished_model(folder)
-    if finished is not None:
-        return RunStart(finished, True, None)
-    checkpoint = _resumable_checkpoint(folder)
-    if checkpoint is None:
-        _clear_logs(folder)
-    return RunStart(checkpoint, False, None)
 
 
 def _tensorboard_dir(folder: Path, verbose: int) -> str | None:
@@ -613,7 +372,7 @@ def _run_figures(config: RunConfig, env: GraphVecEnv, model: GraphOffPolicyAlgor
     algorithm, kwargs = preset_kwargs(config.preset, paper=config.paper, n_envs=env.num_envs)
     return {
         "algorithm": algorithm.__name__,
-        "algorithm_kwargs": _plain(merge(kwargs, config.hyperparams)),
+        "algorithm_kwargs": plain(merge(kwargs, config.hyperparams)),
         "n_agents": int(env.n_agents),
         "num_envs": int(env.num_envs),
         "n_parameters": trained_parameter_count(model),
@@ -639,132 +398,6 @@ def trained_parameter_count(model: GraphOffPolicyAlgorithm) -> int:
     return int(sum(param.numel() for param in params.values()))
 
 
-def _plain(value: Any) -> Any:
-    """``value`` with tuples as lists and numpy scalars as Python numbers (for YAML and JSON)."""
-    if isinstance(value, dict):
-        return {key: _plain(item) for key, item in value.items()}
-    if isinstance(value, list | tuple):
-        return [_plain(item) for item in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
-
-
-class PolicyWrapper:
-    """Anything with a graph model's ``predict``, whose actions :meth:`adjust` sees (and may change).
-
-    :param model: anything with a graph model's ``predict``.
-    """
-
-    def __init__(self, model: Any):
-        self.model = model
-
-    def predict(
-        self,
-        observation: dict[str, np.ndarray],
-        state: Any = None,
-        episode_start: Any = None,
-        deterministic: bool = False,
-    ) -> tuple[np.ndarray, Any]:
-        """The wrapped model's actions ``(n_slots,)`` after :meth:`adjust`, and its state."""
-        actions, state = self.model.predict(
-            observation, state=state, episode_start=episode_start, deterministic=deterministic
-        )
-        return self.adjust(observation, np.asarray(actions)), state
-
-    def adjust(self, observation: dict[str, np.ndarray], actions: np.ndarray) -> np.ndarray:
-        """The actions to return instead of the model's ``actions`` ``(n_slots,)``."""
-        raise NotImplementedError
-
-
-class EpsilonRandomPolicy(PolicyWrapper):
-    """A model whose action is replaced, per agent with probability ``epsilon``, by a uniformly random
-    valid action (within ``obs["action_mask"]`` when present): the original code's evaluation mode.
-
-    :param model: anything with a graph model's ``predict``.
-    :param epsilon: probability of a random action per agent and step.
-    """
-
-    def __init__(self, model: Any, epsilon: float, seed: int | None = None):
-        if not 0.0 <= epsilon <= 1.0:
-            raise ValueError(f"epsilon must lie in [0, 1], got {epsilon}.")
-        super().__init__(model)
-        self.epsilon = epsilon
-        self.n_actions = int(model.action_space.n)
-        self.rng = np.random.default_rng(seed)
-
-    def adjust(self, observation: dict[str, np.ndarray], actions: np.ndarray) -> np.ndarray:
-        """Each action replaced by a random valid one with probability ``epsilon``."""
-        n_slots = len(observation["obs"])
-        mask = observation.get("action_mask")
-        valid = (
-            np.ones((n_slots, self.n_actions), dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
-        )
-        random_actions = np.argmax(self.rng.random(valid.shape) * valid, axis=1)  # uniform among valid
-        explore = self.rng.random(n_slots) < self.epsilon
-        return np.where(explore, random_actions, actions)
-
-
-class ActionCounter(PolicyWrapper):
-    """A model whose actions are counted, per action index.
-
-    :param model: anything with a graph model's ``predict``.
-    :param n_actions: size of the (padded) action space.
-    """
-
-    def __init__(self, model: Any, n_actions: int):
-        super().__init__(model)
-        self.counts = np.zeros(n_actions, dtype=np.int64)
-
-    def adjust(self, observation: dict[str, np.ndarray], actions: np.ndarray) -> np.ndarray:
-        """The actions unchanged, counted."""
-        self.counts += np.bincount(actions.ravel(), minlength=len(self.counts))
-        return actions
-
-    def frequencies(self) -> list[float]:
-        """Fraction of all counted agent-steps that took each action (zeros before any step)."""
-        return (self.counts / max(1, int(self.counts.sum()))).tolist()
-
-
-def action_rule(model: Any, deterministic: bool) -> str:
-    """How ``model.predict(..., deterministic=deterministic)`` picks its actions, before any
-    :class:`PolicyWrapper` (such as :class:`EpsilonRandomPolicy`) changes them: ``"uniform random"``
-    for a :class:`RandomGraphPolicy`, ``"greedy"`` with ``deterministic`` or for a graph model with
-    ``stochastic=False`` (the DQN-style presets and the ``-S`` variants), ``"sampled"`` for a
-    stochastic graph model, else ``"predict(deterministic=False)"`` (a model this cannot tell)."""
-    while isinstance(model, PolicyWrapper):
-        model = model.model
-    if isinstance(model, RandomGraphPolicy):
-        return "uniform random"
-    stochastic = getattr(getattr(model, "policy", None), "stochastic", None)
-    if deterministic or stochastic is False:
-        return "greedy"
-    return "sampled" if stochastic else "predict(deterministic=False)"
-
-
-def evaluate_model(model: Any, env: GraphVecEnv, n_episodes: int, deterministic: bool) -> dict[str, Any]:
-    """Team-return figures of ``n_episodes`` episodes: mean, std, per-episode returns and lengths, the
-    fraction of agent-steps that took each action (over every step the evaluation ran), the action
-    rule used (``actions``, see :func:`action_rule`; ``deterministic`` says whether it is greedy) and
-    the probability ``epsilon`` of a random action mixed in."""
-    counter = ActionCounter(model, int(env.action_space.n))
-    returns, lengths = evaluate_graph_policy(
-        counter, env, n_eval_episodes=n_episodes, deterministic=deterministic, return_episode_rewards=True
-    )
-    rule = action_rule(model, deterministic)
-    return {
-        "mean": float(np.mean(returns)),
-        "std": float(np.std(returns)),
-        "returns": [float(r) for r in returns],
-        "lengths": [int(n) for n in lengths],
-        "n_episodes": len(returns),
-        "actions": rule,
-        "deterministic": rule == "greedy",
-        "epsilon": float(getattr(model, "epsilon", 0.0)),
-        "action_frequencies": counter.frequencies(),
-    }
-
-
 def algorithm_of_zip(path: Path) -> type[GraphOffPolicyAlgorithm]:
     """``SoftHGRN`` or ``SACHGRN``, from the policy class recorded in a saved model."""
     import sb3_hgrn
@@ -775,94 +408,6 @@ def algorithm_of_zip(path: Path) -> type[GraphOffPolicyAlgorithm]:
         if f"sb3_hgrn.{name}" in module:
             return getattr(sb3_hgrn, "SACHGRN" if name == "sac_hgrn" else "SoftHGRN")
     raise ConfigError(f"{path} is not an sb3_hgrn model: it was saved by {describe_saved_model(path)}.")
-
-
-def locate_run(path: str | os.PathLike, env: str | None = None) -> tuple[Path, RunConfig, Path | None]:
-    """The model file, run configuration and run folder (the one holding ``config.yml``, ``None``
-    without one) of ``path`` (a run folder, its ``model.zip`` or a checkpoint).
-
-    A run folder gives its ``model.zip``, else its latest checkpoint; damaged ones are skipped with a
-    warning. A damaged file given by name raises :class:`ConfigError` ("damaged model file"). A bare
-    ``.zip`` outside any run folder needs ``env`` (then the env's defaults are used).
-    """
-    path = Path(path)
-    if path.is_dir():
-        final = [path / MODEL_FILE] if (path / MODEL_FILE).exists() else []
-        model_path = _first_good([*final, *_checkpoints(path)])
-        if model_path is None:
-            raise ConfigError(f"{path} holds neither a whole {MODEL_FILE} nor a whole checkpoint.")
-        candidates = [path]
-    else:
-        if not path.exists() and Path(f"{path}.zip").exists():
-            path = Path(f"{path}.zip")
-        if not path.exists():
-            raise ConfigError(f"No run folder or model file at {path}.")
-        try:
-            check_model_file(path)
-        except DamagedModelFileError as error:
-            raise ConfigError(str(error)) from error
-        model_path = path
-        candidates = [path.parent, path.parent.parent]
-    for folder in candidates:
-        if (folder / CONFIG_FILE).exists():
-            data = yaml.safe_load((folder / CONFIG_FILE).read_text(encoding="utf-8"))
-            config = RunConfig.from_dict(data)
-            if env is not None and env != config.env:
-                raise ConfigError(f"{path} was trained on {config.env}, not {env}.")
-            return model_path, config, folder
-    if env is None:
-        raise ConfigError(f"No {CONFIG_FILE} beside {path}: pass --env to say which env it runs on.")
-    check_env_name(env)
-    return model_path, RunConfig(env, "", "", 0, {}, 1, 1, 0, 10, [], False, {}), None
-
-
-def check_stored_model_paths(
-    config: RunConfig, folder: Path, given: Collection[str] = (), trust_config: bool = False
-) -> None:
-    """Raise :class:`ConfigError` when the ``config.yml`` of the run in ``folder`` makes its env load
-    a saved model (e.g. a Pursuit controller) from outside the folder.
-
-    Loading a model zip unpickles it and so can run code: a run's ``config.yml`` may only point to
-    models inside its own folder, unless ``trust_config``. Env arguments in ``given`` (passed by the
-    user, over the stored ones) are not checked. Which env arguments name models the env module says
-    with ``model_paths(env_kwargs) -> {argument: path}`` (a registered env's module, or the module that
-    defines a user env ``MODULE:ATTR``, imported here: call this after :func:`check_stored_env`).
-    """
-    if trust_config:
-        return
-    if is_env_spec(config.env):
-        env_module = inspect.getmodule(load_env_factory(config.env))
-    else:
-        env_module = importlib.import_module(f"sb3_hgrn.envs.{config.env}")
-    model_paths = getattr(env_module, "model_paths", None)
-    if model_paths is None:
-        return
-    inside = folder.resolve()
-    for name, value in model_paths(config.env_kwargs).items():
-        if name not in given and not model_file_path(value).resolve().is_relative_to(inside):
-            raise ConfigError(
-                f"{folder / CONFIG_FILE} sets {name}={value!r}, a model outside the run folder. Loading a "
-                "model file can run code, so a run's config may only name models inside its own folder. "
-                f"If you trust this config, pass --trust-config (trust_config=True), or give the model "
-                f"yourself with --env-param {name}=PATH."
-            )
-
-
-def check_stored_env(config: RunConfig, folder: Path, given: str | None, trust_config: bool = False) -> None:
-    """Raise :class:`ConfigError` when the ``config.yml`` of the run in ``folder`` names a user env
-    (``MODULE:ATTR``) that the user did not name too.
-
-    Building a user env imports its module, which runs its code: a run's ``config.yml`` may name one
-    only if the user gives the same with ``given`` (``--env``), or with ``trust_config``.
-    """
-    if trust_config or not is_env_spec(config.env) or given == config.env:
-        return
-    raise ConfigError(
-        f"{folder / CONFIG_FILE} names the env {config.env!r}, code of its own that would be imported "
-        "and run. A run's config may name such an env only if you name it too: pass "
-        f"--env {config.env} (env={config.env!r}) if that is your env, or --trust-config "
-        "(trust_config=True) if you trust this config."
-    )
 
 
 def load_run(
@@ -937,60 +482,3 @@ def evaluate_run(
         return evaluate_model(policy, vec_env, n_episodes, deterministic)
     finally:
         vec_env.close()
-
-
-def render_run(
-    path: str | os.PathLike,
-    out: str | os.PathLike,
-    steps: int | None = None,
-    fps: float = 10.0,
-    deterministic: bool = False,
-    env: str | None = None,
-    seed: int | None = None,
-    trust_config: bool = False,
-    trust_pickle: bool = False,
-    **env_kwargs: Any,
-) -> int:
-    """Run one episode of copy 0 with ``render_mode="rgb_array"`` and write the frames as a GIF.
-
-    :param steps: stop after this many steps (default: the whole episode).
-    :param trust_config: see :func:`load_run`.
-    :param trust_pickle: see :func:`load_run`.
-    :return: the number of frames written.
-    """
-    from PIL import Image
-
-    model, vec_env, _ = load_run(
-        path,
-        env=env,
-        n_envs=1,
-        seed=seed,
-        device="cpu",
-        render_mode="rgb_array",
-        trust_config=trust_config,
-        trust_pickle=trust_pickle,
-        **env_kwargs,
-    )
-    try:
-        observations = vec_env.reset()
-        frames = [vec_env.render()]
-        state, starts = None, np.ones(vec_env.num_envs, dtype=bool)
-        step = 0
-        while steps is None or step < steps:
-            actions, state = model.predict(
-                observations, state=state, episode_start=starts, deterministic=deterministic
-            )
-            observations, _, dones, _ = vec_env.step(actions)
-            step += 1
-            if dones[0]:  # the copy has already reset: its next frame would show a new episode
-                break
-            frames.append(vec_env.render())
-    finally:
-        vec_env.close()
-    frames = [frame for frame in frames if frame is not None]
-    if not frames:
-        raise ConfigError(f"{vec_env} rendered no frames.")
-    images = [Image.fromarray(np.asarray(frame, dtype=np.uint8)) for frame in frames]
-    Path(out).parent.mkdir(parents=True, exist_ok=True)
-    images[0].save(out, save_all=True, append_images=images[1:], duration=max(1, round(1000 / fps)), loop=0)
-    return len(images)

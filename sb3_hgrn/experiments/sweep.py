@@ -41,6 +41,14 @@ import yaml
 
 from sb3_hgrn.common.files import write_csv_atomically, write_text_atomically
 from sb3_hgrn.experiments.backends import Backend, LocalBackend
+from sb3_hgrn.experiments.cells import (
+    format_cell,
+    format_interval,
+    format_number,
+    iqm_columns,
+    mean_std,
+    rounded,
+)
 from sb3_hgrn.experiments.config import (
     ConfigError,
     budget_settings,
@@ -49,18 +57,10 @@ from sb3_hgrn.experiments.config import (
     parse_value,
     resolve_config,
 )
-from sb3_hgrn.experiments.runs import read_eval, run_folder
+from sb3_hgrn.experiments.jobs import Job, run_jobs, train_args
+from sb3_hgrn.experiments.run_folder import read_eval, run_folder
 from sb3_hgrn.experiments.stats import BOOTSTRAP_REPS, rliable_modules
-from sb3_hgrn.experiments.table1 import (
-    Job,
-    format_cell,
-    format_number,
-    iqm_columns,
-    mean_std,
-    run_jobs,
-    train_args,
-)
-from sb3_hgrn.experiments.table1_stats import format_interval, rounded
+from sb3_hgrn.validation import is_integer
 
 ENV_PREFIX = "env."
 """Prefix of env arguments among a point's keys (``env.n_agents``)."""
@@ -137,7 +137,7 @@ def read_grid_file(path: str | os.PathLike) -> dict[str, Any]:
     if presets is not None:
         result["presets"] = [presets] if isinstance(presets, str) else [str(p) for p in presets]
     if data.get("seeds") is not None:
-        if not isinstance(data["seeds"], int) or isinstance(data["seeds"], bool) or data["seeds"] < 1:
+        if not is_integer(data["seeds"]) or data["seeds"] < 1:
             raise ConfigError(f"{path}: seeds must be a positive number of seeds, got {data['seeds']!r}.")
         result["seeds"] = data["seeds"]
     return result

@@ -2,7 +2,7 @@
 
 The processes run on a backend (:mod:`sb3_hgrn.experiments.backends`): this machine's, or Ray tasks.
 
-Runs go to ``<folder>/table1/<env>/<preset>/seed_<seed>/`` (see :mod:`sb3_hgrn.experiments.runs`);
+Runs go to ``<folder>/table1/<env>/<preset>/seed_<seed>/`` (see :mod:`sb3_hgrn.experiments.run_folder`);
 a run whose folder holds a complete ``eval.json`` is skipped, so a killed sweep resumes where it
 stopped. Each (env, seed) also gets a uniformly random policy evaluated the same way, without
 training (``<env>/random/seed_<seed>/``), as the tables' anchor row. After every finished run the
@@ -13,17 +13,20 @@ sweep ends they get the robust statistics too (:mod:`sb3_hgrn.experiments.table1
 from __future__ import annotations
 
 import os
-import re
-import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from sb3_hgrn.common.files import write_csv_atomically, write_text_atomically
-from sb3_hgrn.experiments.backends import Backend, LocalBackend, RunHandle
+from sb3_hgrn.experiments.backends import Backend, LocalBackend
+from sb3_hgrn.experiments.cells import (
+    format_cell,
+    format_interval,
+    format_number,
+    iqm_columns,
+    mean_std,
+    rounded,
+)
 from sb3_hgrn.experiments.config import (
     RANDOM_POLICY,
     ConfigError,
@@ -33,7 +36,7 @@ from sb3_hgrn.experiments.config import (
     load_hyperparams,
     random_policy_config,
 )
-from sb3_hgrn.experiments.lock import lock_holder
+from sb3_hgrn.experiments.jobs import Job, check_budget_of_folder, plan_jobs, print_line, run_jobs, train_args
 from sb3_hgrn.experiments.paper import (
     ENV_TITLES,
     PAPER_EVAL_EPISODES,
@@ -43,92 +46,19 @@ from sb3_hgrn.experiments.paper import (
     PRESET_TITLES,
     TABLE1_ENVS,
 )
-from sb3_hgrn.experiments.runs import evaluate_random_policy, read_eval, run_folder
-from sb3_hgrn.experiments.stats import BOOTSTRAP_REPS, iqm_interval, rliable_modules
+from sb3_hgrn.experiments.run_folder import read_eval, run_folder
+from sb3_hgrn.experiments.runs import evaluate_random_policy
+from sb3_hgrn.experiments.stats import BOOTSTRAP_REPS, rliable_modules
 from sb3_hgrn.experiments.table1_stats import (
     RobustTables,
-    format_interval,
-    interval_columns,
     markdown_sections,
     robust_tables,
-    rounded,
     write_robust_tables,
 )
 from sb3_hgrn.presets import TABLE1
 
-LOG_FILE = "train.log"
 COMPARISON_EPSILON = "0.3"
 """The epsilon of the authors' evaluation mode, reported beside the plain policy."""
-
-
-@dataclass
-class Job:
-    """One (env, preset, seed) run of a sweep, with extra ``train`` arguments (e.g. ``--param ...``)."""
-
-    env: str
-    preset: str
-    seed: int
-    folder: Path
-    args: tuple[str, ...] = ()
-
-    def label(self) -> str:
-        """How the sweep's log names the run."""
-        return " ".join((f"{self.env} {self.preset} seed {self.seed}", *self.args))
-
-
-def plan_jobs(root: Path, envs: Sequence[str], presets: Sequence[str], seeds: Sequence[int]) -> list[Job]:
-    """All runs, seed by seed (a partial sweep then covers the whole table with its first seeds)."""
-    return [
-        Job(env, preset, seed, run_folder(root, env, preset, seed))
-        for seed in seeds
-        for env in envs
-        for preset in presets
-    ]
-
-
-def _print(message: str) -> None:
-    print(message, flush=True)
-
-
-def train_args(
-    job: Job, budget: str, root: Path, threads: int | None, save_freq: int | None = None
-) -> list[str]:
-    """The ``sb3-hgrn train`` arguments of ``job`` into the run folders under ``root`` (its own
-    ``job.args`` last)."""
-    command = [
-        "train",
-        "--env",
-        job.env,
-        "--preset",
-        job.preset,
-        "--budget",
-        budget,
-        "--seed",
-        str(job.seed),
-        "--folder",
-        str(root),
-        "--verbose",
-        "0",
-    ]
-    if threads is not None:
-        command += ["--threads", str(threads)]
-    if save_freq is not None:
-        command += ["--save-freq", str(save_freq)]
-    return [*command, *job.args]
-
-
-def check_budget_of_folder(root: Path, budget: str) -> None:
-    """Refuse to mix budgets: complete runs under ``root`` must all be of ``budget`` (runs that
-    ``--overwrite`` moved aside, ``seed_<n>.replaced-<time>/``, are not runs of the sweep)."""
-    for path in root.glob("*/*/seed_*/eval.json"):
-        if not re.fullmatch(r"seed_\d+", path.parent.name):
-            continue
-        done = read_eval(path.parent)
-        if done is not None and done.get("budget") != budget:
-            raise ConfigError(
-                f"{path.parent} holds a run of budget {done.get('budget')!r}, not {budget!r}: "
-                "use another --folder for this budget."
-            )
 
 
 def run_sweep(
@@ -140,7 +70,7 @@ def run_sweep(
     envs: Sequence[str] | None = None,
     threads: int | None = None,
     save_freq: int | None = None,
-    log: Callable[[str], None] = _print,
+    log: Callable[[str], None] = print_line,
     backend: Backend | None = None,
 ) -> list[Job]:
     """Train and evaluate every missing run, ``jobs`` processes at a time, and write the tables.
@@ -189,7 +119,11 @@ def run_sweep(
 
 
 def evaluate_random_anchors(
-    root: Path, budget: str, envs: Sequence[str], seeds: Sequence[int], log: Callable[[str], None] = _print
+    root: Path,
+    budget: str,
+    envs: Sequence[str],
+    seeds: Sequence[int],
+    log: Callable[[str], None] = print_line,
 ) -> None:
     """Evaluate the uniformly random policy for every (env, seed) whose anchor run is missing."""
     for env in envs:
@@ -198,105 +132,6 @@ def evaluate_random_anchors(
             if read_eval(folder) is None:
                 done = evaluate_random_policy(random_policy_config(env, budget, seed), folder)
                 log(f"{env} random policy seed {seed}: team return {done['mean']:.1f} +- {done['std']:.1f}")
-
-
-def run_jobs(
-    todo: Sequence[Job],
-    args: Callable[[Job], list[str]],
-    jobs: int = 1,
-    threads: int | None = None,
-    log: Callable[[str], None] = _print,
-    on_finished: Callable[[], object] | None = None,
-    backend: Backend | None = None,
-) -> list[Job]:
-    """Run ``sb3-hgrn`` with the arguments ``args(job)`` for every job of ``todo`` as its own
-    process on ``backend`` (default: local processes), ``jobs`` at a time.
-
-    Each process writes its output to its folder's ``train.log``. A job succeeds when its process
-    exits with status 0 and leaves a complete ``eval.json``; a failed one is logged with the end of
-    its log and the others go on. A job whose folder another process has locked (a run going on
-    there, see :mod:`sb3_hgrn.experiments.lock`) is not started and counts as failed. Interrupted
-    (Ctrl-C), it stops the runs going on (:func:`stop_runs`) before it raises ``KeyboardInterrupt``.
-
-    :param threads: cap of the processes' OpenMP / MKL threads (``None``: left as they are).
-    :param on_finished: called after every finished job, and when interrupted (e.g. to rewrite tables).
-    :return: the jobs that failed.
-    """
-    backend = backend or LocalBackend()
-    todo = list(todo)
-    failed: list[Job] = []
-    running: list[tuple[Job, RunHandle, float]] = []
-    finished = 0
-    try:
-        while todo or running:
-            while todo and len(running) < jobs:
-                job = todo.pop(0)
-                holder = lock_holder(job.folder)
-                if holder is not None:  # its train.log belongs to the run going on there
-                    failed.append(job)
-                    log(f"{job.label()}: SKIPPED, {job.folder} is in use by {holder}")
-                    continue
-                job.folder.mkdir(parents=True, exist_ok=True)
-                running.append((job, backend.start(args(job), job.folder / LOG_FILE, threads), time.time()))
-            time.sleep(0.2)
-            for entry in list(running):
-                job, run, started = entry
-                status = run.poll()
-                if status is None:
-                    continue
-                running.remove(entry)
-                finished += 1
-                done = read_eval(job.folder)
-                total = finished + len(todo) + len(running)
-                label = f"[{finished}/{total}] {job.label()}"
-                if status == 0 and done is not None:
-                    log(
-                        f"{label}: team return {done['mean']:.1f} +- {done['std']:.1f} "
-                        f"({time.time() - started:.0f} s)"
-                    )
-                else:
-                    failed.append(job)
-                    log(
-                        f"{label}: FAILED (exit {status}); see {job.folder / LOG_FILE}:\n"
-                        + _tail(job.folder / LOG_FILE)
-                    )
-                if on_finished is not None:
-                    on_finished()
-    except KeyboardInterrupt:
-        stop_runs([run for _, run, _ in running])
-        if on_finished is not None:
-            on_finished()
-        raise
-    return failed
-
-
-def stop_runs(runs: Sequence[RunHandle]) -> None:
-    """Stop ``runs`` together: every one interrupted first, then each stopped
-    (:meth:`~sb3_hgrn.experiments.backends.RunHandle.stop`), so that their grace times overlap."""
-    for run in runs:
-        run.interrupt()
-    for run in runs:
-        run.stop()
-
-
-def _tail(path: Path, lines: int = 15) -> str:
-    try:
-        return "".join(path.read_text(encoding="utf-8", errors="replace").splitlines(True)[-lines:])
-    except OSError:
-        return ""
-
-
-def mean_std(values: list[float]) -> tuple[float | None, float | None]:
-    """Mean and (population) standard deviation; ``None`` for no values, and std ``None`` for one."""
-    if not values:
-        return None, None
-    return float(np.mean(values)), float(np.std(values)) if len(values) > 1 else None
-
-
-def iqm_columns(values: list[float], reps: int | None) -> dict[str, float | None]:
-    """``iqm``, ``iqm_low``, ``iqm_high`` of one cell's seed scores (``None`` without scores or ``reps``)."""
-    interval = iqm_interval(np.array(values).reshape(-1, 1), reps) if values and reps else None
-    return interval_columns("iqm", interval)
 
 
 def collect_rows(
@@ -366,17 +201,6 @@ def write_tables(
         write_robust_tables(results, tables)
     write_text_atomically(results / "table1.md", markdown(rows, budget, envs, presets, seeds, tables))
     return rows
-
-
-def format_number(value: float) -> str:
-    return f"{value:.0f}" if abs(value) >= 100 else f"{value:.1f}"
-
-
-def format_cell(mean: float | None, std: float | None) -> str:
-    """``mean +- std``, the mean alone when there is no spread to show, ``-`` when missing."""
-    if mean is None:
-        return "-"
-    return format_number(mean) if std is None else f"{format_number(mean)} +- {format_number(std)}"
 
 
 def markdown(

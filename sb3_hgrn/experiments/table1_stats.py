@@ -20,7 +20,7 @@ are the seeds it has finished on every env.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,12 +30,12 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from sb3_hgrn.common.files import atomic_write, write_csv_atomically
+from sb3_hgrn.experiments.cells import format_interval, interval_columns, rounded
 from sb3_hgrn.experiments.config import RANDOM_POLICY
 from sb3_hgrn.experiments.paper import ENV_TITLES, PRESET_TITLES
-from sb3_hgrn.experiments.runs import figure_root, read_eval, run_folder
+from sb3_hgrn.experiments.run_folder import figure_root, read_eval, run_folder
 from sb3_hgrn.experiments.stats import (
     BOOTSTRAP_REPS,
-    Interval,
     Profile,
     improvement_interval,
     iqm_interval,
@@ -104,21 +104,6 @@ def across_envs(by_env: Sequence[Scores]) -> np.ndarray:
     seeds = sorted(set.intersection(*(set(scores) for scores in by_env)))
     values = [[scores[seed] for scores in by_env] for seed in seeds]
     return np.array(values, dtype=float).reshape(len(seeds), len(by_env))
-
-
-def interval_columns(name: str, interval: Interval | None) -> dict[str, float | None]:
-    """``{name, name_low, name_high}`` of ``interval`` (``None`` each when there is none)."""
-    values = (None, None, None) if interval is None else (interval.estimate, interval.low, interval.high)
-    return dict(zip((name, f"{name}_low", f"{name}_high"), values, strict=True))
-
-
-def format_interval(
-    estimate: float | None, low: float | None, high: float | None, number: Callable[[float], str]
-) -> str:
-    """``estimate [low, high]``, ``-`` when missing."""
-    if estimate is None or low is None or high is None:
-        return "-"
-    return f"{number(estimate)} [{number(low)}, {number(high)}]"
 
 
 def _title(preset: str) -> str:
@@ -280,11 +265,6 @@ def draw_profiles(profiles: Mapping[str, Profile], env_anchors: Sequence[Anchor]
         f"Performance profiles over the runs of {envs}\nshaded: 95 % bootstrap intervals", fontsize=10
     )
     return figure
-
-
-def rounded(rows: Sequence[dict[str, Any]], digits: int = 4) -> list[dict[str, Any]]:
-    """``rows`` with their floats rounded to ``digits`` decimals (for the CSV files)."""
-    return [{key: round(v, digits) if isinstance(v, float) else v for key, v in row.items()} for row in rows]
 
 
 def write_robust_tables(results: Path, tables: RobustTables) -> None:

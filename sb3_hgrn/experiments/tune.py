@@ -46,7 +46,6 @@ from optuna.trial import FrozenTrial, Trial, TrialState
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_hgrn.common.arguments import is_number
 from sb3_hgrn.common.evaluation import evaluate_graph_policy
 from sb3_hgrn.common.files import atomic_write, write_csv_atomically, write_text_atomically
 from sb3_hgrn.common.policies import policy_parameters
@@ -59,8 +58,10 @@ from sb3_hgrn.experiments.config import (
     nest,
     resolve_config,
 )
-from sb3_hgrn.experiments.runs import EVAL_SEED_OFFSET, config_differences, make_env, new_model
+from sb3_hgrn.experiments.run_folder import config_differences
+from sb3_hgrn.experiments.runs import EVAL_SEED_OFFSET, make_env, new_model
 from sb3_hgrn.presets import PRESETS, merge
+from sb3_hgrn.validation import is_flag, is_integer, is_number
 
 SEARCH_SPACES_FILE = "search_spaces.yml"
 STUDY_FILE = "study.db"
@@ -135,9 +136,9 @@ def parse_distribution(name: str, spec: Any, where: str) -> BaseDistribution:
         if not all(is_number(spec[key]) for key in keys if key != "log"):
             raise ValueError(f"{', '.join(sorted(keys - {'log'}))} must be numbers")
         if kind == "int":
-            if not all(isinstance(spec[key], int) for key in keys if key != "log"):
+            if not all(is_integer(spec[key]) for key in keys if key != "log"):
                 raise ValueError("low, high and step must be integers")
-            if not isinstance(spec.get("log", False), bool):
+            if not is_flag(spec.get("log", False)):
                 raise ValueError("log must be true or false")
             return IntDistribution(
                 spec["low"], spec["high"], log=spec.get("log", False), step=spec.get("step", 1)

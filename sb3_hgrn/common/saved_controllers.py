@@ -11,6 +11,7 @@ repeats exactly. :func:`resolve_model_paths` turns the saved models' paths of an
 from __future__ import annotations
 
 import contextlib
+import importlib
 import inspect
 import os
 from collections.abc import Callable, Iterator
@@ -50,9 +51,7 @@ def load_controller(
             raise ModelFileError(
                 f"{file} is not an sb3_hgrn model: it was saved by {describe_saved_model(file)}."
             )
-        import sb3_hgrn
-
-        model_class = getattr(sb3_hgrn, MODEL_CLASSES[package])
+        model_class = getattr(importlib.import_module(package), MODEL_CLASSES[package])
     return model_class.load(file, device="cpu", trust_pickle=trust_pickle)
 
 
@@ -144,7 +143,7 @@ def resolve_model_paths(env_fn: Callable[..., Any], env_kwargs: dict[str, Any]) 
 
     Which arguments name saved models the module defining ``env_fn`` says with
     ``model_paths(env_kwargs) -> {argument: path}`` (as :mod:`sb3_hgrn.envs.pursuit_v0` does, and a
-    module of one's own can with :func:`sb3_hgrn.envs.controllers.controller_paths`); for other envs
+    module of one's own can with :func:`sb3_hgrn.envs.driven_sides.controller_paths`); for other envs
     ``env_kwargs`` is returned as it is. The models are loaded without running code from their files
     (a file that needs full unpickling is refused; pass a ``ModelController(path, trust_pickle=True)``
     in ``env_kwargs`` instead of its path to load one you trust).

@@ -1,4 +1,5 @@
-"""Controllers: what chooses the actions of the agents an env drives instead of learning.
+"""Driven sides and their controllers: what chooses the actions of the agents an env drives instead
+of learning.
 
 An env whose learners play against (or beside) agents that do not learn, such as Pursuit's other side
 or the other team of :class:`~sb3_hgrn.envs.wrappers.DrivenAgents`, describes those agents as a
@@ -9,7 +10,7 @@ or the other team of :class:`~sb3_hgrn.envs.wrappers.DrivenAgents`, describes th
   (:class:`RandomController`);
 - a function ``(observations: dict[name, obs], env) -> dict[name, action]`` (:class:`FunctionController`);
 - a model with SB3's ``predict`` (:class:`ModelDriver`), e.g. an sb3_hgrn model wrapped in
-  ``sb3_hgrn.common.controllers.ModelController``;
+  ``sb3_hgrn.common.saved_controllers.ModelController``;
 - a name the env adds for a scripted controller of its own (Pursuit's ``"evader"``).
 
 The env side loads no saved model: a path is refused here, and loaded on the learner side
@@ -247,7 +248,7 @@ def make_controller(
     if isinstance(spec, str | os.PathLike):
         raise ValueError(
             f"{argument} must be one of {names}, a function or a model with predict(); {spec!r} is neither. "
-            "The env loads no saved model: pass it loaded (sb3_hgrn.common.controllers.ModelController"
+            "The env loads no saved model: pass it loaded (sb3_hgrn.common.saved_controllers.ModelController"
             "(path)), or build the env with sb3_hgrn.make_graph_vec_env or the command line, which load "
             "a saved model's path given in env_kwargs (for an env of your own, the arguments its module's "
             "model_paths names)."
