@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from sb3_hgrn.experiments.config import random_policy_config
-from sb3_hgrn.experiments.runs import evaluate_random_policy, read_eval, run_folder
+from sb3_hgrn.experiments.run_folder import read_eval, run_folder
+from sb3_hgrn.experiments.runs import evaluate_random_policy
 from sb3_hgrn.experiments.stats import iqm_interval
 
 
