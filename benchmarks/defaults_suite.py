@@ -8,7 +8,7 @@ A candidate is a name and the algorithm arguments it sets over the library defau
 :data:`SUITE` the script runs ``sb3-hgrn sweep`` at the env's ``cpu`` budget (one run at a time, one
 torch thread; finished runs are kept and skipped), then evaluates the uniformly random policy on the
 same evaluation episodes. It prints, per env, each (candidate, preset)'s mean +- std of the saved
-models' evaluations and their mean wall time per run, and over the suite the IQM of the runs'
+models' evaluations and their mean CPU seconds of training per run, and over the suite the IQM of the runs'
 normalised scores with its 95 % stratified-bootstrap interval: Random is 0 and the best mean of the
 table on that env is 1 (the ``dqn`` preset is near Random on some envs, so it cannot be the unit).
 """
@@ -101,47 +101,51 @@ def random_scores(folder: Path, env: SuiteEnv, seeds: int) -> np.ndarray:
 def run_results(
     folder: Path, candidate: Candidate, env: SuiteEnv, preset: str, seeds: int
 ) -> tuple[np.ndarray, np.ndarray] | None:
-    """``(seeds,)`` evaluation means and wall times of one (candidate, env, preset), or ``None``
-    while any seed is unfinished."""
+    """``(seeds,)`` evaluation means and CPU seconds of training of one (candidate, env, preset), or
+    ``None`` while any seed is unfinished."""
     results = [
         read_eval(run_folder(sweep_root(folder, candidate, env), env.env, preset, seed))
         for seed in range(seeds)
     ]
     if any(result is None for result in results):
         return None
-    return np.array([r["mean"] for r in results]), np.array([r["wall_time_s"] for r in results])
+    cpu_seconds = [r.get("train_cpu_s", np.nan) for r in results]  # runs before it was recorded: nan
+    return np.array([r["mean"] for r in results]), np.array(cpu_seconds)
+
+
+def cell(scores: np.ndarray, cpu_seconds: np.ndarray) -> str:
+    """``mean +- std (CPU s)`` of one (candidate, env, preset)'s seeds."""
+    return f"{scores.mean():.1f} +- {scores.std():.1f} ({np.nanmean(cpu_seconds):.0f} s)"
 
 
 def report(
     folder: Path, candidates: list[Candidate], presets: list[str], envs: list[SuiteEnv], seeds: int
 ) -> None:
-    """Print the per-env table and the suite's normalised IQM of every (candidate, preset)."""
-    rows = [(candidate, preset) for candidate in candidates for preset in presets]
-    normalised: dict[tuple[str, str], list[np.ndarray]] = {(c.name, p): [] for c, p in rows}
-    print(f"| env | Random | {' | '.join(f'{c.name} {p}' for c, p in rows)} |")
-    print(f"|---|---|{'---|' * len(rows)}")
+    """Print the per-env table and the suite's normalised IQM of every (candidate, preset) with runs."""
+    pairs = [(candidate, preset) for candidate in candidates for preset in presets]
+    randoms = {env.name: random_scores(folder, env, seeds) for env in envs}
+    results = {(env.name, c.name, p): run_results(folder, c, env, p, seeds) for env in envs for c, p in pairs}
+    columns = [(c.name, p) for c, p in pairs if any(results[env.name, c.name, p] is not None for env in envs)]
+    print(f"| env | Random | {' | '.join(f'{name} {preset}' for name, preset in columns)} |")
+    print(f"|---|---|{'---|' * len(columns)}")
+    normalised: dict[tuple[str, str], list[np.ndarray]] = {column: [] for column in columns}
     for env in envs:
-        random = random_scores(folder, env, seeds)
-        results = {(c.name, p): run_results(folder, c, env, p, seeds) for c, p in rows}
-        done = {key: value for key, value in results.items() if value is not None}
-        cells = [
-            f"{done[key][0].mean():.1f} +- {done[key][0].std():.1f} ({done[key][1].mean():.0f} s)"
-            if key in done else "-"
-            for key in results
-        ]  # fmt: skip
+        random = randoms[env.name]
+        done = {column: results[(env.name, *column)] for column in columns}
+        done = {column: result for column, result in done.items() if result is not None}
+        cells = [cell(*done[column]) if column in done else "-" for column in columns]
         print(f"| {env.name} | {random.mean():.1f} +- {random.std():.1f} | {' | '.join(cells)} |")
         if done:
             best = max(scores.mean() for scores, _ in done.values())
-            for key, (scores, _) in done.items():
-                normalised[key].append((scores - random.mean()) / (best - random.mean()))
-    print("\nNormalised over the suite (Random 0, the best mean of the table on each env 1):")
-    for (name, preset), columns in normalised.items():
-        if columns:
-            interval = iqm_interval(np.stack(columns, axis=1))
-            print(
-                f"  {name:>12s} {preset:10s} IQM {interval.point:6.2f} "
-                f"[{interval.low:5.2f}, {interval.high:5.2f}]  over {len(columns)} envs x {seeds} seeds"
-            )
+            for column, (scores, _) in done.items():
+                normalised[column].append((scores - random.mean()) / (best - random.mean()))
+    print("\nNormalised over the envs each has run (Random 0, the best mean of the table on each env 1):")
+    for (name, preset), by_env in normalised.items():
+        interval = iqm_interval(np.stack(by_env, axis=1))
+        print(
+            f"  {name:>12s} {preset:10s} IQM {interval.estimate:6.2f} "
+            f"[{interval.low:5.2f}, {interval.high:5.2f}]  over {len(by_env)} envs x {seeds} seeds"
+        )
 
 
 def main() -> None:
