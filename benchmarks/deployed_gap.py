@@ -79,11 +79,13 @@ def main() -> None:
     )
     print("|---|---|---|---|---|---|---|")
     for root in args.folders:
+        # several folders: each run is named with its folder's name first, as their layouts may match
+        prefix = (Path(root).name,) if len(args.folders) > 1 else ()
         for folder in run_folders(root):
             mean, std, count = training_tail(folder / "team_returns.csv", args.fraction)
             evaluation = json.loads((folder / "eval.json").read_text(encoding="utf-8"))["mean"]
             kept = evaluation >= mean - std
-            key = folder.parent.relative_to(root).parts
+            key = (*prefix, *folder.parent.relative_to(root).parts)
             groups[key].append((evaluation - mean, kept))
             online = "- | -"
             value = (
@@ -93,8 +95,8 @@ def main() -> None:
                 online_groups[key].append((value - mean, value >= mean - std))
                 online = f"{value:.1f} | {'yes' if value >= mean - std else 'NO'}"
             print(
-                f"| {folder.relative_to(root)} | {mean:.1f} +- {std:.1f} ({count}) | {evaluation:.1f} "
-                f"| {evaluation - mean:+.1f} | {'yes' if kept else 'NO'} | {online} |",
+                f"| {Path(*prefix, folder.relative_to(root))} | {mean:.1f} +- {std:.1f} ({count}) "
+                f"| {evaluation:.1f} | {evaluation - mean:+.1f} | {'yes' if kept else 'NO'} | {online} |",
                 flush=True,
             )
     print("\n| point / env / preset | deployed | mean gap | runs kept |")
