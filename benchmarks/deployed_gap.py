@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections import defaultdict
 from pathlib import Path
@@ -78,9 +79,10 @@ def main() -> None:
         "| run | training tail (mean +- std, episodes) | saved model | gap | kept | online network | kept |"
     )
     print("|---|---|---|---|---|---|---|")
+    common = Path(os.path.commonpath([Path(folder).resolve() for folder in args.folders]))
     for root in args.folders:
-        # several folders: each run is named with its folder's name first, as their layouts may match
-        prefix = (Path(root).name,) if len(args.folders) > 1 else ()
+        # several folders: each run is named with where its folder differs first, as their layouts may match
+        prefix = Path(root).resolve().relative_to(common).parts if len(args.folders) > 1 else ()
         for folder in run_folders(root):
             mean, std, count = training_tail(folder / "team_returns.csv", args.fraction)
             evaluation = json.loads((folder / "eval.json").read_text(encoding="utf-8"))["mean"]
