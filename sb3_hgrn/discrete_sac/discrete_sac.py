@@ -128,6 +128,7 @@ class DiscreteSAC(AlgorithmNamedRuns, TemperatureLearner, OffPolicyAlgorithm):
             device=device,
             seed=seed,
             sde_support=False,
+            support_multi_env=True,
             supported_action_spaces=(spaces.Discrete,),
         )
         self.target_update_interval = target_update_interval
