@@ -15,7 +15,8 @@ Runs go one at a time, seed-major (every algorithm's seed 0 first), and each fin
 to the ``--results`` JSON file at once (written to a temporary file, then renamed), so a killed
 benchmark resumes where it stopped and a partial one still prints the seeds it finished.
 Envs: CartPole-v1, Acrobot-v1, MountainCar-v0, LunarLander-v3 (needs ``gymnasium[box2d]``),
-minatar:MinAtar/Breakout-v1 and minatar:MinAtar/SpaceInvaders-v1 (need ``minatar``).
+MinAtar/Breakout-v1 and MinAtar/SpaceInvaders-v1 (need ``minatar``; the RL Zoo has no MinAtar
+settings, so DQN runs there with those of the MinAtar paper, :data:`MINATAR_DQN`).
 """
 
 from __future__ import annotations
@@ -37,26 +38,53 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.monitor import Monitor
 
 from sb3_hgrn.common.files import write_text_atomically
+from sb3_hgrn.common.torch_layers import AgentViewCNN
 from sb3_hgrn.experiments.single_agent import SINGLE_AGENT_PRESETS, env_settings, make_model
 from sb3_hgrn.experiments.stats import iqm_interval
 
 ZOO_ONLY_KEYS = {"n_timesteps", "policy"}
 """Keys of a Zoo entry that are not DQN arguments."""
 
+MINATAR_DQN: dict[str, Any] = dict(
+    n_timesteps=5_000_000,
+    policy="CnnPolicy",
+    learning_rate=2.5e-4,
+    batch_size=32,
+    buffer_size=100_000,
+    learning_starts=5000,
+    gamma=0.99,
+    target_update_interval=1000,
+    train_freq=1,
+    gradient_steps=1,
+    exploration_initial_eps=1.0,
+    exploration_final_eps=0.1,
+    exploration_fraction=0.02,  # 100k of 5M frames
+    policy_kwargs=dict(
+        features_extractor_class=AgentViewCNN,
+        features_extractor_kwargs=dict(features_dim=128, channels=[16]),
+        net_arch=[],
+        optimizer_class=th.optim.RMSprop,
+        optimizer_kwargs=dict(alpha=0.95, centered=True, eps=0.01),
+    ),
+)
+"""The RL Zoo has no MinAtar settings: DQN as in the MinAtar paper (Young and Tian, 2019, Table 2 and
+its examples/dqn.py: one 3x3 convolution of 16 channels, 128 hidden units, centred RMSProp)."""
+
 
 def zoo_dqn_settings(env: str) -> dict[str, Any]:
     """The RL Zoo's DQN settings of ``env`` from the installed rl_zoo3's ``hyperparams/dqn.yml``
-    (``policy_kwargs``, a ``dict(...)`` string there, read as literals); ``SystemExit`` naming the
-    install command or the env when they are missing."""
+    (``policy_kwargs``, a ``dict(...)`` string there, read as literals), or :data:`MINATAR_DQN` for
+    MinAtar; ``SystemExit`` naming the install command or the env when they are missing."""
+    if env.startswith("MinAtar/"):
+        return dict(MINATAR_DQN)
     spec = importlib.util.find_spec("rl_zoo3")
     if spec is None or not spec.submodule_search_locations:
         raise SystemExit("The RL Zoo's hyperparameters need the rl-zoo3 package: pip install rl-zoo3")
     path = Path(spec.submodule_search_locations[0]) / "hyperparams" / "dqn.yml"
     table = yaml.safe_load(path.read_text(encoding="utf-8"))
-    zoo_env = env.split(":", 1)[-1]
-    if zoo_env not in table:
-        raise SystemExit(f"{path} has no DQN settings for {zoo_env!r}.")
-    settings = dict(table[zoo_env])
+    if env not in table:
+        raise SystemExit(f"{path} has no DQN settings for {env!r}.")
+    settings = dict(table[env])
     if isinstance(settings.get("policy_kwargs"), str):
         settings["policy_kwargs"] = literal_call_kwargs(settings["policy_kwargs"])
     return settings

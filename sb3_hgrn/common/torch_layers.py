@@ -19,34 +19,23 @@ class AgentViewCNN(BaseFeaturesExtractor):
     each followed by ReLU, then ``ReLU(Linear(-> features_dim))``. Values are used as the env gives
     them (cast to float32, not rescaled): scale ``uint8`` pixel views in the env if they need it.
 
-    With ``channels_first=True`` it reads ``(C, H, W)`` views instead, such as the small images SB3
-    has transposed for its CNN policies (MinAtar's ``10 x 10``, too small for ``NatureCNN``).
-
-    :param observation_space: one agent's ``Box`` of shape ``(H, W, C)`` (``(C, H, W)`` with
-        ``channels_first``).
+    :param observation_space: one agent's ``Box`` of shape ``(H, W, C)``.
     :param features_dim: output features per agent.
     :param channels: output channels of each convolution.
-    :param channels_first: the views put their channels first.
     """
 
     def __init__(
-        self,
-        observation_space: spaces.Box,
-        features_dim: int = 64,
-        channels: Sequence[int] = (32, 32),
-        channels_first: bool = False,
+        self, observation_space: spaces.Box, features_dim: int = 64, channels: Sequence[int] = (32, 32)
     ) -> None:
-        layout = "channel-first views: a Box of shape (channels, height, width)"
-        if not channels_first:
-            layout = "channel-last views: a Box of shape (height, width, channels)"
         if not isinstance(observation_space, spaces.Box) or len(observation_space.shape) != 3:
-            raise ValueError(f"AgentViewCNN reads {layout}, got {observation_space}.")
+            raise ValueError(
+                "AgentViewCNN reads channel-last views: a Box of shape (height, width, channels), got "
+                f"{observation_space}."
+            )
         if not channels or min(channels) < 1:
             raise ValueError(f"channels must be positive convolution widths, got {channels!r}.")
         super().__init__(observation_space, features_dim)
-        self.channels_first = channels_first
-        shape = observation_space.shape
-        height, width, in_channels = (*shape[1:], shape[0]) if channels_first else shape
+        height, width, in_channels = observation_space.shape
         layers: list[nn.Module] = []
         for out_channels in channels:
             layers += [nn.Conv2d(in_channels, out_channels, kernel_size=3, padding=1), nn.ReLU()]
@@ -55,7 +44,5 @@ class AgentViewCNN(BaseFeaturesExtractor):
         self.linear = nn.Sequential(nn.Linear(in_channels * height * width, features_dim), nn.ReLU())
 
     def forward(self, observations: th.Tensor) -> th.Tensor:
-        """:param observations: ``(batch, H, W, C)`` (``(batch, C, H, W)`` with ``channels_first``).
-        :return: ``(batch, features_dim)``."""
-        views = observations if self.channels_first else observations.permute(0, 3, 1, 2)
-        return self.linear(self.cnn(views))
+        """:param observations: ``(batch, H, W, C)``. :return: ``(batch, features_dim)``."""
+        return self.linear(self.cnn(observations.permute(0, 3, 1, 2)))

@@ -2,35 +2,29 @@
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Any, ClassVar
 
-import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, Schedule
-from stable_baselines3.common.utils import polyak_update
 
 from sb3_hgrn.common.single_agent import TEMPERATURE_SAVE_PARAMS, check_discrete_env, transitions
+from sb3_hgrn.common.soft_actor_critic import SACFigures, SoftActorCritic
 from sb3_hgrn.common.soft_math import (
     ACTOR_LOSSES,
     ALPHA_ENTROPIES,
-    actor_loss,
     bootstrapped,
     critic_minimum,
-    gradient_step,
-    q_regression_loss,
-    sac_next_value,
-    steered_entropy,
 )
-from sb3_hgrn.common.temperature import TemperatureLearner, categorical_entropy
 from sb3_hgrn.common.tensorboard import AlgorithmNamedRuns
 from sb3_hgrn.discrete_sac.policies import CnnPolicy, DiscreteSACPolicy, MlpPolicy, MultiInputPolicy
 
 
-class DiscreteSAC(AlgorithmNamedRuns, TemperatureLearner, OffPolicyAlgorithm):
+class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
     """Soft actor-critic for any Gymnasium env with a ``Discrete`` action space, used as SB3's ``SAC``.
 
     The critics regress (squared error) on the exact soft expectation over actions,
@@ -65,6 +59,7 @@ class DiscreteSAC(AlgorithmNamedRuns, TemperatureLearner, OffPolicyAlgorithm):
         "MultiInputPolicy": MultiInputPolicy,
     }
     policy: DiscreteSACPolicy
+    stochastic = True  # the stochastic variant only (the graph algorithms also have a greedy one)
 
     def __init__(
         self,
@@ -152,43 +147,26 @@ class DiscreteSAC(AlgorithmNamedRuns, TemperatureLearner, OffPolicyAlgorithm):
         policy = self.policy
         policy.set_training_mode(True)
         self._update_learning_rate([policy.actor_optimizer, policy.critic_optimizer])
-        critic_losses, actor_losses, entropies, alpha_gradients, actor_entropies = [], [], [], [], []
+        figures = SACFigures()
         for _ in range(gradient_steps):
             data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)
             batch = transitions(data, self.gamma)
             alpha = policy.temperature.per_agent(None)
             with th.no_grad():
                 next_q = critic_minimum([target(data.next_observations) for target in policy.critic_targets])
-                next_value = sac_next_value(next_q, policy.actor(data.next_observations), alpha)
+                next_value = self._next_value(next_q, policy.actor(data.next_observations), alpha)
                 target_q = bootstrapped(batch.rewards, batch.discounts, batch.terminated, next_value)
-            q_values = [critic(data.observations) for critic in policy.critics]
-            critic_loss = sum(q_regression_loss(q, batch.actions, target_q, batch.mask) for q in q_values)
-            gradient_step(policy.critic_optimizer, critic_loss, policy.critics, self.max_grad_norm)
-
-            min_q = critic_minimum([q.detach() for q in q_values])
-            for _ in range(self.actor_steps):
-                logits = policy.actor(data.observations)
-                loss = actor_loss(self.actor_loss, logits, min_q, alpha, batch.mask)
-                gradient_step(policy.actor_optimizer, loss, policy.actor, self.max_grad_norm)
-
-            actor_entropy = categorical_entropy(logits.detach())
-            steered = steered_entropy(self.alpha_entropy, actor_entropy, min_q, alpha)
-            entropy, alpha_gradient = self._update_temperature(steered, None, batch.mask)
-            if alpha_gradient is not None:
-                alpha_gradients.append(alpha_gradient)
-            actor_entropies.append(actor_entropy.mean().item())
-            critic_losses.append(critic_loss.item())
-            actor_losses.append(loss.item())
-            entropies.append(entropy)
-            self._n_updates += 1
-            if self._n_updates % self.target_update_interval == 0:
-                polyak_update(policy.critics.parameters(), policy.critic_targets.parameters(), self.tau)
-
-        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        self.logger.record("train/critic_loss", float(np.mean(critic_losses)))
-        self.logger.record("train/actor_loss", float(np.mean(actor_losses)))
-        self.logger.record("train/actor_entropy", float(np.mean(actor_entropies)))
-        self._record_temperature(entropies, alpha_gradients)
+            self._sac_step(
+                [critic(data.observations) for critic in policy.critics],
+                batch.actions,
+                target_q,
+                partial(policy.actor, data.observations),
+                alpha,
+                None,
+                batch.mask,
+                figures,
+            )
+        self._record_sac(figures)
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return ["policy", "policy.actor_optimizer", "policy.critic_optimizer", *TEMPERATURE_SAVE_PARAMS], []

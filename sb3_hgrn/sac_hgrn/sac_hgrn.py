@@ -2,33 +2,27 @@
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Any, ClassVar
 
-import numpy as np
 import torch as th
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, Schedule
-from stable_baselines3.common.utils import polyak_update
 
+from sb3_hgrn.common.buffers import GraphSamples
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm, check_added_arguments, unroll
+from sb3_hgrn.common.soft_actor_critic import SACFigures, SoftActorCritic
 from sb3_hgrn.common.soft_math import (
     ACTOR_LOSSES,
     ALPHA_ENTROPIES,
-    actor_loss,
     critic_minimum,
-    gradient_step,
-    masked_mean,
-    q_regression_loss,
-    sac_next_value,
-    steered_entropy,
 )
-from sb3_hgrn.common.temperature import categorical_entropy
 from sb3_hgrn.sac_hgrn.policies import SACHGRNPolicy
 
 BEHAVIOUR_POLICIES = ("actor", "critic")
 
 
-class SACHGRN(GraphOffPolicyAlgorithm):
+class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
     """SAC-HGRN (discrete soft actor-critic with HGRN actor and critics, Ye et al., AAAI 2022).
 
     Critic target: ``r + gamma * (1 - terminated) * sum_a pi(a|o') (Q_target(o', a) - alpha log pi(a|o'))``
@@ -179,24 +173,21 @@ class SACHGRN(GraphOffPolicyAlgorithm):
             return self.policy.critic_act(obs, hidden)
         return super()._behaviour_act(obs, hidden)
 
-    def _next_value(self, next_q: th.Tensor, next_logits: th.Tensor, alpha: th.Tensor) -> th.Tensor:
-        """Value ``(batch, n_agents)`` of the next observations from target Q-values and actor logits
-        ``(batch, n_agents, n_actions)``: the exact soft expectation over actions, or the Q-value of
-        the greedy action for ``stochastic=False``."""
-        return sac_next_value(next_q, next_logits, alpha, self.stochastic)
+    def _after_actor_steps(self) -> None:
+        self.policy.update_average()
 
-    def _policy_loss(
-        self, logits: th.Tensor, q_values: th.Tensor, alpha: th.Tensor, alive: th.Tensor
+    def _actor_logits(
+        self, steps: list[GraphSamples], graphs: list, state: th.Tensor, groups: th.Tensor | None
     ) -> th.Tensor:
-        """Actor loss from its logits and the (detached) critic Q-values ``(batch, n_agents, n_actions)``,
-        averaged over the agents ``alive`` ``(batch, n_agents)`` (1 or 0)."""
-        return actor_loss(self.actor_loss, logits, q_values, alpha, alive, self.stochastic)
+        """The actor's logits ``(steps * batch, n_agents, n_actions)`` along runs of consecutive
+        samples from its stored state ``state`` (see :func:`~sb3_hgrn.common.off_policy.unroll`)."""
+        return self.policy.logits(unroll(self.policy.actor, steps, graphs, state), groups)
 
     def train(self, gradient_steps: int, batch_size: int = 32) -> None:
         policy = self.policy
         policy.set_training_mode(True)
         self._update_learning_rate([policy.actor_optimizer, policy.critic_optimizer])
-        critic_losses, actor_losses, entropies, alpha_gradients, actor_entropies = [], [], [], [], []
+        figures = SACFigures()
         for _ in range(gradient_steps):
             batch, steps = self._sample_runs(batch_size)
             actor_state, *critic_states = policy.split_state(steps[0].hidden)
@@ -221,32 +212,14 @@ class SACHGRN(GraphOffPolicyAlgorithm):
                 unroll(critic, steps, graphs, state)
                 for critic, state in zip(policy.critics, critic_states, strict=True)
             ]
-            actions = batch.actions.unsqueeze(-1)
-            critic_loss = sum(q_regression_loss(q, actions, target_q, batch.alive) for q in q_values)
-            gradient_step(policy.critic_optimizer, critic_loss, policy.critics, self.max_grad_norm)
-
-            min_q = critic_minimum([q.detach() for q in q_values])
-            for _ in range(self.actor_steps):
-                logits = policy.logits(unroll(policy.actor, steps, graphs, actor_state), batch.groups)
-                loss = self._policy_loss(logits, min_q, alpha, batch.alive)
-                gradient_step(policy.actor_optimizer, loss, policy.actor, self.max_grad_norm)
-            policy.update_average()
-
-            actor_entropy = categorical_entropy(logits.detach())
-            steered = steered_entropy(self.alpha_entropy, actor_entropy, min_q, alpha)
-            entropy, alpha_gradient = self._update_temperature(steered, batch.groups, batch.alive)
-            actor_entropies.append(masked_mean(actor_entropy, batch.alive))
-            if alpha_gradient is not None:
-                alpha_gradients.append(alpha_gradient)
-            critic_losses.append(critic_loss.item())
-            actor_losses.append(loss.item())
-            entropies.append(entropy)
-            self._n_updates += 1
-            if self._n_updates % self.target_update_interval == 0:
-                polyak_update(policy.critics.parameters(), policy.critic_targets.parameters(), self.tau)
-
-        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        self.logger.record("train/critic_loss", float(np.mean(critic_losses)))
-        self.logger.record("train/actor_loss", float(np.mean(actor_losses)))
-        self.logger.record("train/actor_entropy", float(th.stack(actor_entropies).mean()))
-        self._record_temperature(entropies, alpha_gradients)
+            self._sac_step(
+                q_values,
+                batch.actions.unsqueeze(-1),
+                target_q,
+                partial(self._actor_logits, steps, graphs, actor_state, batch.groups),
+                alpha,
+                batch.groups,
+                batch.alive,
+                figures,
+            )
+        self._record_sac(figures)
