@@ -20,18 +20,17 @@ SMALL = dict(
     learning_starts=16, batch_size=8, buffer_size=500, train_freq=4, policy_kwargs=dict(net_arch=[16])
 )
 
+ZOO_SCHEDULE = dict(
+    learning_rate=2.3e-3, batch_size=64, learning_starts=1000, train_freq=256, gradient_steps=128, n_steps=3,
+    target_entropy_ratio=0.05, policy_kwargs=dict(net_arch=[64, 64]),
+)  # fmt: skip
+"""The RL Zoo's DQN schedule for CartPole-v1 with 3-step returns and smaller networks."""
 CARTPOLE = {
-    "SoftDQN": dict(
-        learning_rate=1e-3, batch_size=64, buffer_size=20_000, learning_starts=1000,
-        target_update_interval=500, train_freq=4, gradient_steps=1, target_entropy_ratio=0.05, policy_kwargs=dict(net_arch=[64, 64]),
-    ),
-    "DiscreteSAC": dict(
-        learning_rate=1e-3, batch_size=64, learning_starts=1000, train_freq=4, gradient_steps=2, tau=0.01,
-        target_entropy_ratio=0.05, policy_kwargs=dict(net_arch=[64, 64]),
-    ),
-}  # fmt: skip
+    "SoftDQN": dict(ZOO_SCHEDULE, target_update_interval=10),  # env steps: a copy per round
+    "DiscreteSAC": dict(ZOO_SCHEDULE, tau=1.0, target_update_interval=128),  # gradient steps: likewise
+}
 """Settings that learn CartPole-v1 within :data:`CARTPOLE_STEPS` (seeds 0, 1 and 2 checked by hand)."""
-CARTPOLE_STEPS = {"SoftDQN": 20_000, "DiscreteSAC": 15_000}
+CARTPOLE_STEPS = 25_000
 
 
 class DictObservation(gym.ObservationWrapper):
@@ -83,7 +82,7 @@ class MultiDiscreteEnv(ContinuousEnv):
 
 @pytest.mark.parametrize("name", ALGORITHMS)
 def test_learns_cartpole(name):
-    model = ALGORITHMS[name]("MlpPolicy", "CartPole-v1", seed=0, **CARTPOLE[name]).learn(CARTPOLE_STEPS[name])
+    model = ALGORITHMS[name]("MlpPolicy", "CartPole-v1", seed=0, **CARTPOLE[name]).learn(CARTPOLE_STEPS)
     env = gym.make("CartPole-v1")
     env.reset(seed=1000)
     mean_return, _ = evaluate_policy(model, env, n_eval_episodes=10, deterministic=True)
@@ -171,11 +170,18 @@ def test_rejects_action_spaces_other_than_discrete(name, env_class, kind):
         ALGORITHMS[name]("MlpPolicy", env_class())
 
 
-def test_discrete_sac_rejects_unknown_losses():
-    with pytest.raises(ValueError, match="actor_loss must be one of"):
-        DiscreteSAC("MlpPolicy", "CartPole-v1", actor_loss="mse")
-    with pytest.raises(ValueError, match="alpha_entropy must be one of"):
-        DiscreteSAC("MlpPolicy", "CartPole-v1", alpha_entropy="critic")
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (dict(actor_loss="mse"), "actor_loss must be one of"),
+        (dict(alpha_entropy="critic"), "alpha_entropy must be one of"),
+        (dict(actor_steps=0), "actor_steps must be a positive integer, got 0"),
+        (dict(policy_kwargs=dict(n_critics=0)), "n_critics must be a positive integer, got 0"),
+    ],
+)
+def test_discrete_sac_names_bad_options(options, message):
+    with pytest.raises(ValueError, match=message):
+        DiscreteSAC("MlpPolicy", "CartPole-v1", **options)
 
 
 def test_cli_trains_a_single_agent_preset(tmp_path, capsys):
@@ -195,11 +201,16 @@ def test_cli_trains_a_single_agent_preset(tmp_path, capsys):
     "extra, message",
     [
         (["--env", "Pendulum-v1"], "has no settings for the env 'Pendulum-v1'"),
+        (
+            ["--env", "CartPole-v1", "--param", "policy_kwargs.features_extractor_class=Resnet"],
+            "CartPole-v1.policy_kwargs.features_extractor_class 'Resnet' is not one of NatureCNN",
+        ),
+        (["--env", "CartPole-v1", "--param", "n_timesteps=0"], "CartPole-v1.n_timesteps must be a positive"),
         (["--env", "CartPole-v1", "--budget", "ci"], "--budget applies to graph envs"),
         (["--env", "CartPole-v1", "--param", "no_such_option=1"], "Cannot build SoftDQN on CartPole-v1"),
     ],
 )
 def test_cli_names_bad_single_agent_input(extra, message, tmp_path, capsys):
     with pytest.raises(SystemExit):
-        main(["train", "--preset", "soft_dqn", "--folder", str(tmp_path), "--timesteps", "10", *extra])
+        main(["train", "--preset", "soft_dqn", "--folder", str(tmp_path), *extra])
     assert message in capsys.readouterr().err
