@@ -19,10 +19,10 @@ import argparse
 import numpy as np
 import torch as th
 
+from sb3_hgrn.common.soft_math import boltzmann_divergence
 from sb3_hgrn.common.temperature import categorical_entropy
 from sb3_hgrn.experiments.runs import load_run
 from sb3_hgrn.sac_hgrn import SACHGRN
-from sb3_hgrn.sac_hgrn.sac_hgrn import boltzmann_divergence
 
 
 def collect(model: SACHGRN, env, steps: int) -> list[tuple]:

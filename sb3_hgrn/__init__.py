@@ -1,4 +1,5 @@
-"""sb3_hgrn: graph-recurrent many-agent reinforcement learning for Stable-Baselines3.
+"""sb3_hgrn: graph-recurrent many-agent reinforcement learning for Stable-Baselines3,
+and the same soft algorithms for single-agent envs (SoftDQN, DiscreteSAC).
 
 The public names are imported when first used (PEP 562), so that importing the env side,
 :mod:`sb3_hgrn.envs`, does not import torch.
@@ -13,12 +14,14 @@ __version__ = "0.1.0"
 
 _MODULES = {
     "AgentViewCNN": "sb3_hgrn.common.torch_layers",
+    "DiscreteSAC": "sb3_hgrn.discrete_sac",
     "DrivenAgents": "sb3_hgrn.envs.wrappers",
     "GraphEvalCallback": "sb3_hgrn.common.evaluation",
     "GraphFromPositions": "sb3_hgrn.envs.wrappers",
     "GraphVecEnv": "sb3_hgrn.common.vec_env",
     "RandomGraphPolicy": "sb3_hgrn.common.evaluation",
     "SACHGRN": "sb3_hgrn.sac_hgrn",
+    "SoftDQN": "sb3_hgrn.soft_dqn",
     "SoftHGRN": "sb3_hgrn.soft_hgrn",
     "TeamFigures": "sb3_hgrn.envs.wrappers",
     "evaluate_graph_policy": "sb3_hgrn.common.evaluation",
@@ -29,12 +32,14 @@ _MODULES = {
 
 __all__ = [
     "AgentViewCNN",
+    "DiscreteSAC",
     "DrivenAgents",
     "GraphEvalCallback",
     "GraphFromPositions",
     "GraphVecEnv",
     "RandomGraphPolicy",
     "SACHGRN",
+    "SoftDQN",
     "SoftHGRN",
     "TeamFigures",
     "__version__",

@@ -50,7 +50,10 @@ def _add_env_params(parser: argparse.ArgumentParser) -> None:
     )
 
 
-ENV_HELP = f"one of {', '.join(REGISTERED_ENVS)}, or {ENV_SPEC_HELP} (needs --config)"
+ENV_HELP = (
+    f"one of {', '.join(REGISTERED_ENVS)}, or {ENV_SPEC_HELP} (needs --config); with --preset soft_dqn or "
+    "discrete_sac, a Gymnasium env id (e.g. CartPole-v1)"
+)
 
 
 def _add_config(parser: argparse.ArgumentParser) -> None:
@@ -118,7 +121,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     train = commands.add_parser("train", help="train one run into its own folder, then evaluate it")
     train.add_argument("--env", required=True, help=ENV_HELP)
-    train.add_argument("--preset", required=True, help="a name of sb3_hgrn.presets.PRESETS (docs/presets.md)")
+    train.add_argument(
+        "--preset",
+        required=True,
+        help="a name of sb3_hgrn.presets.PRESETS (docs/presets.md), or soft_dqn or discrete_sac for "
+        "single-agent Gymnasium envs (docs/single_agent.md)",
+    )
     train.add_argument("--budget", default="cpu", help=f"config budget: {', '.join(BUDGETS)} (default cpu)")
     train.add_argument("--seed", type=int, default=0)
     train.add_argument(
@@ -420,10 +428,47 @@ def train_config(argv: Sequence[str]) -> RunConfig | None:
     return _train_config(args)
 
 
+def _train_single_agent(args: argparse.Namespace) -> int:
+    """``train`` with a single-agent preset: a Gymnasium env id and ``hyperparams/<preset>.yml``."""
+    from sb3_hgrn.experiments.single_agent import single_agent_run_folder, train_single_agent
+
+    if args.budget != "cpu":
+        raise ConfigError(
+            f"--budget applies to graph envs; the {args.preset} preset trains the n_timesteps of "
+            f"hyperparams/{args.preset}.yml for the env (or --timesteps), got --budget {args.budget}."
+        )
+    _set_threads(args.threads)
+    folder = single_agent_run_folder(args.folder, args.env, args.preset, args.seed)
+    results = train_single_agent(
+        args.preset,
+        args.env,
+        args.seed,
+        folder,
+        timesteps=args.timesteps,
+        params={
+            **parse_assignments(args.param, "--param"),
+            "env_kwargs": parse_assignments(args.env_param, "--env-param"),
+        },
+        config_file=args.config,
+        overwrite=args.overwrite,
+        verbose=args.verbose,
+        device=args.device,
+    )
+    print(
+        f"{args.preset} on {args.env} (seed {args.seed}): return {results['mean']:.2f} "
+        f"+- {results['std']:.2f} over {results['n_episodes']} episodes after {results['env_steps']} "
+        f"env steps ({results['wall_time_s']:.0f} s); run folder {folder}"
+    )
+    return 0
+
+
 def _train(args: argparse.Namespace) -> int:
     from sb3_hgrn.experiments.run_folder import run_folder
     from sb3_hgrn.experiments.runs import train_run
+    from sb3_hgrn.experiments.single_agent import is_single_agent_preset
 
+    if is_single_agent_preset(args.preset):
+        return _train_single_agent(args)
     config = _train_config(args)
     _set_threads(args.threads)
     folder = run_folder(args.folder, config.env, config.preset, config.seed)

@@ -8,7 +8,7 @@ import pytest
 import torch as th
 
 from sb3_hgrn import SACHGRN, SoftHGRN, evaluate_graph_policy, make_graph_vec_env
-from sb3_hgrn.soft_hgrn.soft_hgrn import soft_value
+from sb3_hgrn.common.soft_math import soft_value
 from tests.toy_envs import NeighborBitEnv, SignalReaderEnv
 
 CTC_SMALL = dict(n_hunters=4, n_red_banks=2, n_blue_banks=2, map_size=12, max_cycles=20)

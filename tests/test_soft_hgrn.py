@@ -16,7 +16,7 @@ from sb3_hgrn import (
     evaluate_graph_policy,
     make_graph_vec_env,
 )
-from sb3_hgrn.soft_hgrn.soft_hgrn import soft_value
+from sb3_hgrn.common.soft_math import soft_value
 from tests.doc_snippets import docstring_example, python_block, run_snippet
 from tests.toy_envs import DictOnlyEnv, NeighborBitEnv, check_deployed_average
 from tests.toy_envs import bit_vec_env as bit_env

@@ -10,6 +10,8 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import BaseBuffer
 
+from sb3_hgrn.common.soft_math import bootstrapped
+
 
 class GraphSamples(NamedTuple):
     """A batch of ``batch`` graphs of ``n_agents`` agents each."""
@@ -31,7 +33,7 @@ class GraphSamples(NamedTuple):
     def bootstrapped(self, next_value: th.Tensor) -> th.Tensor:
         """The regression target ``rewards + discounts * (1 - terminated) * next_value`` ``(batch,
         n_agents)`` from the state values ``(batch, n_agents)`` of the next observations."""
-        return self.rewards + self.discounts * (1.0 - self.terminated) * next_value
+        return bootstrapped(self.rewards, self.discounts, self.terminated, next_value)
 
 
 def smallest_index_dtype(n_agents: int) -> np.dtype:

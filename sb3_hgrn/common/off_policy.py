@@ -18,7 +18,7 @@ from gymnasium import spaces
 from stable_baselines3.common import torch_layers as sb3_torch_layers
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, RolloutReturn, Schedule, TrainFreq
+from stable_baselines3.common.type_aliases import GymEnv, RolloutReturn, Schedule, TrainFreq
 from stable_baselines3.common.utils import (
     LinearSchedule,
     check_for_correct_spaces,
@@ -42,7 +42,8 @@ from sb3_hgrn.common.files import (
 from sb3_hgrn.common.hgrn import HGRN
 from sb3_hgrn.common.policies import GraphPolicy, check_graph_spaces, check_policy_kwargs
 from sb3_hgrn.common.safe_load import add_plain_record, read_saved_pickle, saved_entries, write_zip
-from sb3_hgrn.common.temperature import TemperatureController, group_means, target_entropy
+from sb3_hgrn.common.temperature import TemperatureLearner
+from sb3_hgrn.common.tensorboard import AlgorithmNamedRuns
 from sb3_hgrn.common.vec_env import make_graph_vec_env
 from sb3_hgrn.validation import is_integer, is_number
 
@@ -77,13 +78,6 @@ def check_graph_env(env: Any) -> VecEnv:
         )
     check_graph_spaces(env.observation_space, env.action_space)
     return env
-
-
-def masked_mean(values: th.Tensor, mask: th.Tensor) -> th.Tensor:
-    """Mean of ``values`` ``(batch, n_agents)`` over the entries where ``mask`` (same shape, 1 or 0)
-    is 1: the per-agent losses of the agents alive at their step, those of gone agents adding
-    exactly zero (their values must be finite) to the value and its gradient."""
-    return (values * mask).sum() / mask.sum().clamp(min=1.0)
 
 
 def concatenated(steps: list[GraphSamples]) -> GraphSamples:
@@ -247,7 +241,7 @@ def env_action_counts(env: VecEnv) -> list[int]:
     return [int(n) for n in getattr(env, "group_n_actions", (env.action_space.n,))]
 
 
-class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
+class GraphOffPolicyAlgorithm(AlgorithmNamedRuns, TemperatureLearner, OffPolicyAlgorithm):
     """SB3 ``OffPolicyAlgorithm`` for graph VecEnvs whose slots are the agents of env copies.
 
     Units follow SB3: ``total_timesteps``, ``learning_starts`` and ``buffer_size`` count
@@ -389,16 +383,7 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
             self.exploration_initial_eps, self.exploration_final_eps, self.exploration_fraction
         )
         self._team_episodes = deque(maxlen=self._stats_window_size)
-        self.policy.temperature.reset(self.alpha_init)
-        self.target_entropy = [
-            target_entropy(self.target_entropy_ratio, n) for n in self.policy.action_counts
-        ]
-        self.temperature = TemperatureController(
-            self.policy.temperature,
-            th.tensor(self.target_entropy),
-            self.alpha_optimizer,
-            self.alpha_learning_rate,
-        )
+        self._setup_temperature()
 
     def _sample_runs(self, batch_size: int) -> tuple[GraphSamples, list[GraphSamples]]:
         """The ``batch_size`` graphs of one gradient step: ``batch_size // sequence_length`` runs of
@@ -407,30 +392,9 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
         steps = self.replay_buffer.sample_sequences(batch_size // self.sequence_length, self.sequence_length)
         return concatenated(steps), steps
 
-    def _update_temperature(
-        self, entropy: th.Tensor, groups: th.Tensor | None, alive: th.Tensor
-    ) -> tuple[np.ndarray, float | None]:
-        """Measure the mean policy entropy of every group from the per-agent entropies
-        ``(batch, n_agents)`` of the living agents (``alive`` ``(batch, n_agents)``, 1 or 0) and step
-        alpha toward the targets; returns the group entropies and alpha's mean gradient (``None``
-        when alpha is not learned)."""
-        group_entropy = group_means(entropy.detach(), groups, self.policy.n_groups, alive)
-        gradient = self.temperature.update(group_entropy) if self.stochastic and self.learn_alpha else None
-        return group_entropy.cpu().numpy(), gradient
-
-    def _record_temperature(self, entropies: list[np.ndarray], alpha_gradients: list[float]) -> None:
-        """Log the mean policy entropy of the last training round, its target, alpha and its gradient
-        (averaged over groups, and per group ``g`` as ``.../group_g`` with several groups)."""
-        entropy = np.nanmean(np.stack(entropies), axis=0)
-        alpha = self.policy.temperature.alpha.detach().cpu().numpy()
-        figures = {"entropy": entropy, "target_entropy": np.array(self.target_entropy), "alpha": alpha}
-        for name, values in figures.items():
-            self.logger.record(f"train/{name}", float(np.nanmean(values)))
-            if len(values) > 1:
-                for group, value in enumerate(values):
-                    self.logger.record(f"train/{name}/group_{group}", float(value))
-        if alpha_gradients:
-            self.logger.record("train/alpha_grad", float(np.mean(alpha_gradients)))
+    def _learns_alpha(self) -> bool:
+        """Whether training steps alpha: only the stochastic variants learn it."""
+        return self.stochastic and self.learn_alpha
 
     def _make_replay_buffer(self) -> None:
         self.replay_buffer = GraphReplayBuffer(
@@ -787,22 +751,6 @@ class GraphOffPolicyAlgorithm(OffPolicyAlgorithm):
                     self.dump_logs()
         callback.on_rollout_end()
         return RolloutReturn(vec_steps * n_copies, n_episodes, continue_training=True)
-
-    def learn(
-        self,
-        total_timesteps: int,
-        callback: MaybeCallback = None,
-        log_interval: int = 4,
-        tb_log_name: str | None = None,
-        reset_num_timesteps: bool = True,
-        progress_bar: bool = False,
-    ) -> GraphOffPolicyAlgorithm:
-        """SB3's ``learn``; the TensorBoard run is named after the algorithm unless ``tb_log_name``
-        is given."""
-        tb_log_name = tb_log_name or type(self).__name__
-        return super().learn(
-            total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar
-        )
 
     def _on_step(self) -> None:
         self.exploration_rate = self.exploration_schedule(self._current_progress_remaining)

@@ -20,7 +20,9 @@ shared by all groups and does advance.
 from __future__ import annotations
 
 import math
+from typing import Any
 
+import numpy as np
 import torch as th
 from torch import nn
 
@@ -155,3 +157,63 @@ class TemperatureController:
             for name, value in self.optimizer.state[param].items()
             if isinstance(value, th.Tensor) and value.shape == param.shape
         }
+
+
+class TemperatureLearner:
+    """Mixin of the soft algorithms: sets up, steps and logs the learned temperature of
+    ``self.policy.temperature`` (an :class:`EntropyTemperature`).
+
+    The algorithm provides ``policy`` (with ``temperature``, ``n_groups`` and ``action_counts``, the
+    action count of every group), ``logger`` and the options ``alpha_init``, ``target_entropy_ratio``,
+    ``learn_alpha``, ``alpha_optimizer`` and ``alpha_learning_rate``.
+    """
+
+    policy: Any
+    logger: Any
+    alpha_init: float
+    target_entropy_ratio: float
+    learn_alpha: bool
+    alpha_optimizer: str
+    alpha_learning_rate: float
+
+    def _setup_temperature(self) -> None:
+        """Reset alpha to ``alpha_init`` and build the controller toward every group's target entropy."""
+        self.policy.temperature.reset(self.alpha_init)
+        self.target_entropy = [
+            target_entropy(self.target_entropy_ratio, n) for n in self.policy.action_counts
+        ]
+        self.temperature = TemperatureController(
+            self.policy.temperature,
+            th.tensor(self.target_entropy),
+            self.alpha_optimizer,
+            self.alpha_learning_rate,
+        )
+
+    def _learns_alpha(self) -> bool:
+        """Whether training steps alpha (``learn_alpha``)."""
+        return self.learn_alpha
+
+    def _update_temperature(
+        self, entropy: th.Tensor, groups: th.Tensor | None, alive: th.Tensor
+    ) -> tuple[np.ndarray, float | None]:
+        """Measure the mean policy entropy of every group from the per-agent entropies
+        ``(batch, n_agents)`` (or ``(batch,)``) of the living agents (``alive``, same shape, 1 or 0)
+        and step alpha toward the targets; returns the group entropies and alpha's mean gradient
+        (``None`` when alpha is not learned)."""
+        group_entropy = group_means(entropy.detach(), groups, self.policy.n_groups, alive)
+        gradient = self.temperature.update(group_entropy) if self._learns_alpha() else None
+        return group_entropy.cpu().numpy(), gradient
+
+    def _record_temperature(self, entropies: list[np.ndarray], alpha_gradients: list[float]) -> None:
+        """Log the mean policy entropy of the last training round, its target, alpha and its gradient
+        (averaged over groups, and per group ``g`` as ``.../group_g`` with several groups)."""
+        entropy = np.nanmean(np.stack(entropies), axis=0)
+        alpha = self.policy.temperature.alpha.detach().cpu().numpy()
+        figures = {"entropy": entropy, "target_entropy": np.array(self.target_entropy), "alpha": alpha}
+        for name, values in figures.items():
+            self.logger.record(f"train/{name}", float(np.nanmean(values)))
+            if len(values) > 1:
+                for group, value in enumerate(values):
+                    self.logger.record(f"train/{name}/group_{group}", float(value))
+        if alpha_gradients:
+            self.logger.record("train/alpha_grad", float(np.mean(alpha_gradients)))

@@ -2,41 +2,27 @@
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Any, ClassVar
 
-import numpy as np
 import torch as th
-import torch.nn.functional as F
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, Schedule
-from stable_baselines3.common.utils import polyak_update
 
-from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm, check_added_arguments, masked_mean, unroll
-from sb3_hgrn.common.temperature import categorical_entropy
+from sb3_hgrn.common.buffers import GraphSamples
+from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm, check_added_arguments, unroll
+from sb3_hgrn.common.soft_actor_critic import SACFigures, SoftActorCritic
+from sb3_hgrn.common.soft_math import (
+    ACTOR_LOSSES,
+    ALPHA_ENTROPIES,
+    critic_minimum,
+)
 from sb3_hgrn.sac_hgrn.policies import SACHGRNPolicy
 
-ACTOR_LOSSES = ("boltzmann", "standard", "policy_gradient")
-ALPHA_ENTROPIES = ("actor", "boltzmann")
 BEHAVIOUR_POLICIES = ("actor", "critic")
 
 
-def boltzmann_divergence(log_probs: th.Tensor, q_values: th.Tensor, alpha: th.Tensor | None) -> th.Tensor:
-    """``KL(softmax(Q / alpha) || pi)`` per agent ``(batch, n_agents)`` from the policy's log-probabilities
-    and Q-values ``(batch, n_agents, n_actions)``; ``alpha`` ``(1,)`` or per agent ``(..., 1)``, or
-    ``None`` for the greedy limit (the one-hot of the best action).
-
-    Its gradient on the logits is ``pi - softmax(Q / alpha)``: an action whose probability has fallen
-    to about zero still gets the full pull of the Boltzmann policy toward its Q-value (the gradient
-    of the standard loss ``sum_a pi(a) (alpha log pi(a) - Q(a))`` shrinks with ``pi(a)``).
-    """
-    if alpha is None:
-        target = F.one_hot(q_values.argmax(dim=-1), q_values.shape[-1]).to(log_probs.dtype)
-    else:
-        target = th.softmax(q_values / alpha, dim=-1)
-    return (th.special.xlogy(target, target) - target * log_probs).sum(dim=-1)
-
-
-class SACHGRN(GraphOffPolicyAlgorithm):
+class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
     """SAC-HGRN (discrete soft actor-critic with HGRN actor and critics, Ye et al., AAAI 2022).
 
     Critic target: ``r + gamma * (1 - terminated) * sum_a pi(a|o') (Q_target(o', a) - alpha log pi(a|o'))``
@@ -187,37 +173,21 @@ class SACHGRN(GraphOffPolicyAlgorithm):
             return self.policy.critic_act(obs, hidden)
         return super()._behaviour_act(obs, hidden)
 
-    def _next_value(self, next_q: th.Tensor, next_logits: th.Tensor, alpha: th.Tensor) -> th.Tensor:
-        """Value ``(batch, n_agents)`` of the next observations from target Q-values and actor logits
-        ``(batch, n_agents, n_actions)``: the exact soft expectation over actions, or the Q-value of
-        the greedy action for ``stochastic=False``."""
-        if not self.stochastic:
-            return next_q.gather(-1, next_logits.argmax(dim=-1, keepdim=True)).squeeze(-1)
-        log_probs = th.log_softmax(next_logits, dim=-1)
-        return (log_probs.exp() * (next_q - alpha * log_probs)).sum(dim=-1)
+    def _after_actor_steps(self) -> None:
+        self.policy.update_average()
 
-    def _policy_loss(
-        self, logits: th.Tensor, q_values: th.Tensor, alpha: th.Tensor, alive: th.Tensor
+    def _actor_logits(
+        self, steps: list[GraphSamples], graphs: list, state: th.Tensor, groups: th.Tensor | None
     ) -> th.Tensor:
-        """Actor loss from its logits and the (detached) critic Q-values ``(batch, n_agents, n_actions)``,
-        averaged over the agents ``alive`` ``(batch, n_agents)`` (1 or 0)."""
-        log_probs = th.log_softmax(logits, dim=-1)
-        if self.actor_loss == "boltzmann":
-            divergence = boltzmann_divergence(log_probs, q_values, alpha if self.stochastic else None)
-            return masked_mean(divergence, alive)
-        alpha = alpha if self.stochastic else th.zeros_like(alpha)
-        if self.actor_loss == "standard":
-            return masked_mean((log_probs.exp() * (alpha * log_probs - q_values)).sum(dim=-1), alive)
-        actions = th.distributions.Categorical(logits=logits.detach()).sample().unsqueeze(-1)
-        log_prob = log_probs.gather(-1, actions)  # (batch, n_agents, 1), as alpha per agent
-        advantage = q_values.gather(-1, actions) - alpha * log_prob.detach()
-        return -masked_mean((log_prob * advantage).squeeze(-1), alive)
+        """The actor's logits ``(steps * batch, n_agents, n_actions)`` along runs of consecutive
+        samples from its stored state ``state`` (see :func:`~sb3_hgrn.common.off_policy.unroll`)."""
+        return self.policy.logits(unroll(self.policy.actor, steps, graphs, state), groups)
 
     def train(self, gradient_steps: int, batch_size: int = 32) -> None:
         policy = self.policy
         policy.set_training_mode(True)
         self._update_learning_rate([policy.actor_optimizer, policy.critic_optimizer])
-        critic_losses, actor_losses, entropies, alpha_gradients, actor_entropies = [], [], [], [], []
+        figures = SACFigures()
         for _ in range(gradient_steps):
             batch, steps = self._sample_runs(batch_size)
             actor_state, *critic_states = policy.split_state(steps[0].hidden)
@@ -229,12 +199,12 @@ class SACHGRN(GraphOffPolicyAlgorithm):
                 next_logits, _ = policy.actor_logits(
                     batch.next_observations, next_graph, next_actor_state, batch.groups
                 )
-                next_q = th.stack(
+                next_q = critic_minimum(
                     [
                         target(batch.next_observations, next_graph, state)[0]
                         for target, state in zip(policy.critic_targets, next_critic_states, strict=True)
                     ]
-                ).amin(dim=0)
+                )
                 next_value = self._next_value(next_q, next_logits, alpha)
                 target_q = batch.bootstrapped(next_value)
 
@@ -242,41 +212,14 @@ class SACHGRN(GraphOffPolicyAlgorithm):
                 unroll(critic, steps, graphs, state)
                 for critic, state in zip(policy.critics, critic_states, strict=True)
             ]
-            actions = batch.actions.unsqueeze(-1)
-            critic_loss = sum(
-                masked_mean((q.gather(-1, actions).squeeze(-1) - target_q) ** 2, batch.alive)
-                for q in q_values
+            self._sac_step(
+                q_values,
+                batch.actions.unsqueeze(-1),
+                target_q,
+                partial(self._actor_logits, steps, graphs, actor_state, batch.groups),
+                alpha,
+                batch.groups,
+                batch.alive,
+                figures,
             )
-            policy.critic_optimizer.zero_grad()
-            critic_loss.backward()
-            th.nn.utils.clip_grad_norm_(policy.critics.parameters(), self.max_grad_norm)
-            policy.critic_optimizer.step()
-
-            min_q = th.stack([q.detach() for q in q_values]).amin(dim=0)
-            for _ in range(self.actor_steps):
-                logits = policy.logits(unroll(policy.actor, steps, graphs, actor_state), batch.groups)
-                actor_loss = self._policy_loss(logits, min_q, alpha, batch.alive)
-                policy.actor_optimizer.zero_grad()
-                actor_loss.backward()
-                th.nn.utils.clip_grad_norm_(policy.actor.parameters(), self.max_grad_norm)
-                policy.actor_optimizer.step()
-            policy.update_average()
-
-            actor_entropy = categorical_entropy(logits.detach())
-            steered = actor_entropy if self.alpha_entropy == "actor" else categorical_entropy(min_q / alpha)
-            entropy, alpha_gradient = self._update_temperature(steered, batch.groups, batch.alive)
-            actor_entropies.append(masked_mean(actor_entropy, batch.alive))
-            if alpha_gradient is not None:
-                alpha_gradients.append(alpha_gradient)
-            critic_losses.append(critic_loss.item())
-            actor_losses.append(actor_loss.item())
-            entropies.append(entropy)
-            self._n_updates += 1
-            if self._n_updates % self.target_update_interval == 0:
-                polyak_update(policy.critics.parameters(), policy.critic_targets.parameters(), self.tau)
-
-        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        self.logger.record("train/critic_loss", float(np.mean(critic_losses)))
-        self.logger.record("train/actor_loss", float(np.mean(actor_losses)))
-        self.logger.record("train/actor_entropy", float(th.stack(actor_entropies).mean()))
-        self._record_temperature(entropies, alpha_gradients)
+        self._record_sac(figures)

@@ -10,15 +10,14 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, Schedule
 from stable_baselines3.common.utils import polyak_update
 
-from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm, check_added_arguments, masked_mean, unroll
-from sb3_hgrn.common.temperature import categorical_entropy
+from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm, check_added_arguments, unroll
+from sb3_hgrn.common.soft_math import (
+    boltzmann_entropy,
+    gradient_step,
+    q_regression_loss,
+    soft_q_next_value,
+)
 from sb3_hgrn.soft_hgrn.policies import SoftHGRNPolicy
-
-
-def soft_value(q_values: th.Tensor, alpha: th.Tensor) -> th.Tensor:
-    """``alpha * logsumexp(Q / alpha)`` over the last axis: ``(...)`` from ``(..., n_actions)``;
-    ``alpha`` is ``(1,)`` or per agent ``(..., 1)``."""
-    return (alpha * th.logsumexp(q_values / alpha, dim=-1, keepdim=True)).squeeze(-1)
 
 
 class SoftHGRN(GraphOffPolicyAlgorithm):
@@ -147,7 +146,7 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
     def _next_value(self, next_q: th.Tensor, alpha: th.Tensor) -> th.Tensor:
         """State value ``(batch, n_agents)`` of the next observations from target Q-values
         ``(batch, n_agents, n_actions)``: the soft value, or the hard max for ``stochastic=False``."""
-        return soft_value(next_q, alpha) if self.stochastic else next_q.max(dim=-1).values
+        return soft_q_next_value(next_q, alpha, self.stochastic)
 
     def train(self, gradient_steps: int, batch_size: int = 32) -> None:
         self.policy.set_training_mode(True)
@@ -163,16 +162,12 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
                 target_q = batch.bootstrapped(self._next_value(next_q, alpha))
             graphs = [self.policy.graph_batch(step.neighbors, step.groups) for step in steps]
             q_values = unroll(q_net, steps, graphs, steps[0].hidden)
-            taken_q = q_values.gather(-1, batch.actions.unsqueeze(-1)).squeeze(-1)
-            loss = masked_mean((taken_q - target_q) ** 2, batch.alive)
-            self.policy.optimizer.zero_grad()
-            loss.backward()
-            th.nn.utils.clip_grad_norm_(q_net.parameters(), self.max_grad_norm)
-            self.policy.optimizer.step()
+            loss = q_regression_loss(q_values, batch.actions.unsqueeze(-1), target_q, batch.alive)
+            gradient_step(self.policy.optimizer, loss, q_net, self.max_grad_norm)
             self.policy.update_average()
 
             entropy, alpha_gradient = self._update_temperature(
-                categorical_entropy(q_values.detach() / alpha), batch.groups, batch.alive
+                boltzmann_entropy(q_values.detach(), alpha), batch.groups, batch.alive
             )
             if alpha_gradient is not None:
                 alpha_gradients.append(alpha_gradient)

@@ -1,0 +1,181 @@
+"""SoftDQN and DiscreteSAC against SB3's DQN with the RL Zoo's tuned hyperparameters, on single-agent envs.
+
+Run: nice -n 10 python benchmarks/single_agent_zoo.py --envs CartPole-v1 --seeds 5 --threads 1
+     [--algorithms soft_dqn discrete_sac dqn] [--results benchmarks/single_agent_zoo.json]
+
+Every algorithm trains each env for the RL Zoo's DQN budget (``n_timesteps`` of rl_zoo3's
+``hyperparams/dqn.yml``, read from the installed ``rl-zoo3`` package: ``pip install rl-zoo3``) with
+seeds 0..N-1; DQN with the Zoo's tuned settings for the env, SoftDQN and DiscreteSAC with those of
+``sb3_hgrn/hyperparams/<algorithm>.yml``. The score of a run is the mean return of its greedy policy
+over ``--eval-episodes`` episodes of an env seeded ``seed + 1000``. The table gives the IQM over seeds
+with its 95 % stratified-bootstrap interval (:mod:`sb3_hgrn.experiments.stats`, rliable) and the wall
+time per 100k env steps (training only), with its ratio to DQN's.
+
+Runs go one at a time, seed-major (every algorithm's seed 0 first), and each finished run is added
+to the ``--results`` JSON file at once (written to a temporary file, then renamed), so a killed
+benchmark resumes where it stopped and a partial one still prints the seeds it finished.
+Envs: CartPole-v1, Acrobot-v1, MountainCar-v0, LunarLander-v3 (needs ``gymnasium[box2d]``),
+MinAtar/Breakout-v1 and MinAtar/SpaceInvaders-v1 (need ``minatar``; the RL Zoo has no MinAtar
+settings, so DQN runs there with those of the MinAtar paper, :data:`MINATAR_DQN`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import importlib.util
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+import yaml
+from stable_baselines3 import DQN
+from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.monitor import Monitor
+
+from sb3_hgrn.common.files import write_text_atomically
+from sb3_hgrn.common.torch_layers import AgentViewCNN
+from sb3_hgrn.experiments.single_agent import SINGLE_AGENT_PRESETS, env_settings, make_model
+from sb3_hgrn.experiments.stats import iqm_interval
+
+ZOO_ONLY_KEYS = {"n_timesteps", "policy"}
+"""Keys of a Zoo entry that are not DQN arguments."""
+
+MINATAR_DQN: dict[str, Any] = dict(
+    n_timesteps=5_000_000,
+    policy="CnnPolicy",
+    learning_rate=2.5e-4,
+    batch_size=32,
+    buffer_size=100_000,
+    learning_starts=5000,
+    gamma=0.99,
+    target_update_interval=1000,
+    train_freq=1,
+    gradient_steps=1,
+    exploration_initial_eps=1.0,
+    exploration_final_eps=0.1,
+    exploration_fraction=0.02,  # 100k of 5M frames
+    policy_kwargs=dict(
+        features_extractor_class=AgentViewCNN,
+        features_extractor_kwargs=dict(features_dim=128, channels=[16]),
+        net_arch=[],
+        optimizer_class=th.optim.RMSprop,
+        optimizer_kwargs=dict(alpha=0.95, centered=True, eps=0.01),
+    ),
+)
+"""The RL Zoo has no MinAtar settings: DQN as in the MinAtar paper (Young and Tian, 2019, Table 2 and
+its examples/dqn.py: one 3x3 convolution of 16 channels, 128 hidden units, centred RMSProp)."""
+
+
+def zoo_dqn_settings(env: str) -> dict[str, Any]:
+    """The RL Zoo's DQN settings of ``env`` from the installed rl_zoo3's ``hyperparams/dqn.yml``
+    (``policy_kwargs``, a ``dict(...)`` string there, read as literals), or :data:`MINATAR_DQN` for
+    MinAtar; ``SystemExit`` naming the install command or the env when they are missing."""
+    if env.startswith("MinAtar/"):
+        return dict(MINATAR_DQN)
+    spec = importlib.util.find_spec("rl_zoo3")
+    if spec is None or not spec.submodule_search_locations:
+        raise SystemExit("The RL Zoo's hyperparameters need the rl-zoo3 package: pip install rl-zoo3")
+    path = Path(spec.submodule_search_locations[0]) / "hyperparams" / "dqn.yml"
+    table = yaml.safe_load(path.read_text(encoding="utf-8"))
+    if env not in table:
+        raise SystemExit(f"{path} has no DQN settings for {env!r}.")
+    settings = dict(table[env])
+    if isinstance(settings.get("policy_kwargs"), str):
+        settings["policy_kwargs"] = literal_call_kwargs(settings["policy_kwargs"])
+    return settings
+
+
+def literal_call_kwargs(text: str) -> dict[str, Any]:
+    """The keyword arguments of a ``dict(key=literal, ...)`` string, without evaluating code."""
+    call = ast.parse(text, mode="eval").body
+    if not isinstance(call, ast.Call) or not isinstance(call.func, ast.Name) or call.func.id != "dict":
+        raise SystemExit(f"Expected policy_kwargs of the form dict(key=value, ...), got {text!r}.")
+    return {keyword.arg: ast.literal_eval(keyword.value) for keyword in call.keywords}
+
+
+def train_once(algorithm: str, env: str, seed: int, timesteps: int, eval_episodes: int) -> dict[str, Any]:
+    """Train one run and evaluate its greedy policy: its score, steps and training wall time."""
+    if algorithm == "dqn":
+        settings = zoo_dqn_settings(env)
+        arguments = {key: value for key, value in settings.items() if key not in ZOO_ONLY_KEYS}
+        model = DQN(settings["policy"], Monitor(gym.make(env)), seed=seed, **arguments)
+    else:
+        model = make_model(algorithm, env, env_settings(algorithm, env), seed)
+    start = time.perf_counter()
+    model.learn(timesteps)
+    wall_time = time.perf_counter() - start
+    eval_env = Monitor(gym.make(env))
+    eval_env.reset(seed=seed + 1000)
+    score, _ = evaluate_policy(model, eval_env, n_eval_episodes=eval_episodes, deterministic=True)
+    return {"score": float(score), "env_steps": int(model.num_timesteps), "wall_time_s": wall_time}
+
+
+def load_results(path: Path) -> dict[str, dict[str, Any]]:
+    """Finished runs by ``env/algorithm/seed``, from an earlier (partial) benchmark."""
+    return json.loads(path.read_text(encoding="utf-8")) if path.exists() else {}
+
+
+def table_rows(results: dict[str, dict[str, Any]], envs: list[str], algorithms: list[str]) -> list[str]:
+    """Markdown rows: env, algorithm, seeds, IQM [95 % CI], wall s per 100k env steps, ratio to DQN."""
+    rows = []
+    for env in envs:
+        per_algorithm = {
+            algorithm: [run for key, run in results.items() if key.startswith(f"{env}/{algorithm}/")]
+            for algorithm in algorithms
+        }
+        dqn_runs = per_algorithm.get("dqn") or []
+        dqn_time = (
+            np.mean([run["wall_time_s"] / run["env_steps"] * 1e5 for run in dqn_runs]) if dqn_runs else None
+        )
+        for algorithm, runs in per_algorithm.items():
+            if not runs:
+                continue
+            scores = np.array([[run["score"]] for run in runs])
+            interval = iqm_interval(scores)
+            per_100k = float(np.mean([run["wall_time_s"] / run["env_steps"] * 1e5 for run in runs]))
+            ratio = f"{per_100k / dqn_time:.2f}" if dqn_time else "-"
+            rows.append(
+                f"| {env} | {algorithm} | {len(runs)} | {interval.estimate:.1f} "
+                f"[{interval.low:.1f}, {interval.high:.1f}] | {per_100k:.0f} | {ratio} |"
+            )
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--envs", nargs="+", default=["CartPole-v1"])
+    parser.add_argument("--algorithms", nargs="+", default=[*SINGLE_AGENT_PRESETS, "dqn"],
+                        choices=[*SINGLE_AGENT_PRESETS, "dqn"])  # fmt: skip
+    parser.add_argument("--seeds", type=int, default=5, help="seeds 0..N-1")
+    parser.add_argument("--eval-episodes", type=int, default=20)
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    parser.add_argument("--results", default="benchmarks/single_agent_zoo.json", help="JSON of finished runs")
+    args = parser.parse_args()
+    th.set_num_threads(args.threads)
+    path = Path(args.results)
+    results = load_results(path)
+    for env in args.envs:
+        timesteps = int(zoo_dqn_settings(env)["n_timesteps"])
+        for seed in range(args.seeds):
+            for algorithm in args.algorithms:
+                key = f"{env}/{algorithm}/{seed}"
+                if key in results:
+                    continue
+                results[key] = train_once(algorithm, env, seed, timesteps, args.eval_episodes)
+                write_text_atomically(path, json.dumps(results, indent=1))
+                print(f"{key}: {results[key]}", flush=True)
+    print(f"\n{args.threads} torch thread(s), greedy return over {args.eval_episodes} episodes")
+    print("| env | algorithm | seeds | IQM [95 % CI] | wall s / 100k steps | x DQN |")
+    print("| --- | --- | --- | --- | --- | --- |")
+    print("\n".join(table_rows(results, args.envs, args.algorithms)))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,125 @@
+"""The discrete soft actor-critic gradient step shared by :class:`~sb3_hgrn.SACHGRN` and
+:class:`~sb3_hgrn.DiscreteSAC`: each gathers its batch its own way (graphs and recurrent state, or
+SB3's plain replay samples) and hands the Q-values, targets and actor to :meth:`SoftActorCritic._sac_step`."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.utils import polyak_update
+
+from sb3_hgrn.common.soft_math import (
+    actor_loss,
+    critic_minimum,
+    gradient_step,
+    masked_mean,
+    q_regression_loss,
+    sac_next_value,
+    steered_entropy,
+)
+from sb3_hgrn.common.temperature import TemperatureLearner, categorical_entropy
+
+
+@dataclass
+class SACFigures:
+    """What one training round of gradient steps logs, one entry per step."""
+
+    critic_losses: list[float] = field(default_factory=list)
+    actor_losses: list[float] = field(default_factory=list)
+    actor_entropies: list[float] = field(default_factory=list)
+    entropies: list[np.ndarray] = field(default_factory=list)
+    alpha_gradients: list[float] = field(default_factory=list)
+
+
+class SoftActorCritic(TemperatureLearner):
+    """Mixin of the discrete-SAC algorithms: targets, losses, one gradient step and its logs.
+
+    The algorithm provides ``policy`` (``actor``, ``critics``, ``critic_targets``,
+    ``actor_optimizer``, ``critic_optimizer`` and what :class:`TemperatureLearner` needs), the options
+    ``actor_loss``, ``alpha_entropy``, ``actor_steps``, ``stochastic``, ``max_grad_norm``, ``tau`` and
+    ``target_update_interval`` (gradient steps), and SB3's ``_n_updates``.
+    """
+
+    policy: Any
+    actor_loss: str
+    alpha_entropy: str
+    actor_steps: int
+    stochastic: bool
+    max_grad_norm: float
+    tau: float
+    target_update_interval: int
+    _n_updates: int
+
+    def _next_value(self, next_q: th.Tensor, next_logits: th.Tensor, alpha: th.Tensor) -> th.Tensor:
+        """Value ``(...)`` of the next observations from target Q-values and actor logits
+        ``(..., n_actions)``: the exact soft expectation over actions, or the Q-value of the greedy
+        action for ``stochastic=False`` (:func:`~sb3_hgrn.common.soft_math.sac_next_value`)."""
+        return sac_next_value(next_q, next_logits, alpha, self.stochastic)
+
+    def _policy_loss(
+        self, logits: th.Tensor, q_values: th.Tensor, alpha: th.Tensor, mask: th.Tensor
+    ) -> th.Tensor:
+        """Actor loss from its logits and the (detached) critic Q-values ``(..., n_actions)``, averaged
+        over the entries of ``mask`` ``(...)`` (1 or 0; :func:`~sb3_hgrn.common.soft_math.actor_loss`)."""
+        return actor_loss(self.actor_loss, logits, q_values, alpha, mask, self.stochastic)
+
+    def _after_actor_steps(self) -> None:
+        """Called once the actor has taken its steps, before alpha's (nothing by default)."""
+
+    def _sac_step(
+        self,
+        q_values: list[th.Tensor],
+        actions: th.Tensor,
+        target_q: th.Tensor,
+        actor_logits: Callable[[], th.Tensor],
+        alpha: th.Tensor,
+        groups: th.Tensor | None,
+        mask: th.Tensor,
+        figures: SACFigures,
+    ) -> None:
+        """One gradient step of the critics, ``actor_steps`` of the actor, one of alpha and, every
+        ``target_update_interval`` steps, the critic targets; the figures are added to ``figures``.
+
+        :param q_values: every critic's Q-values ``(..., n_actions)`` (with their graph).
+        :param actions: the taken actions ``(..., 1)`` (int64).
+        :param target_q: the regression target ``(...)``.
+        :param actor_logits: computes the actor's logits ``(..., n_actions)`` (with their graph).
+        :param alpha: ``(1,)`` or per entry ``(..., 1)``, detached.
+        :param groups: agent groups ``(...)`` or ``None`` (one group).
+        :param mask: 1 for the entries that count, 0 for the others ``(...)``.
+        """
+        policy = self.policy
+        critic_loss = sum(q_regression_loss(q, actions, target_q, mask) for q in q_values)
+        gradient_step(policy.critic_optimizer, critic_loss, policy.critics, self.max_grad_norm)
+
+        min_q = critic_minimum([q.detach() for q in q_values])
+        for _ in range(self.actor_steps):
+            logits = actor_logits()
+            loss = self._policy_loss(logits, min_q, alpha, mask)
+            gradient_step(policy.actor_optimizer, loss, policy.actor, self.max_grad_norm)
+        self._after_actor_steps()
+
+        actor_entropy = categorical_entropy(logits.detach())
+        steered = steered_entropy(self.alpha_entropy, actor_entropy, min_q, alpha)
+        entropy, alpha_gradient = self._update_temperature(steered, groups, mask)
+        figures.actor_entropies.append(masked_mean(actor_entropy, mask).item())
+        if alpha_gradient is not None:
+            figures.alpha_gradients.append(alpha_gradient)
+        figures.critic_losses.append(critic_loss.item())
+        figures.actor_losses.append(loss.item())
+        figures.entropies.append(entropy)
+        self._n_updates += 1
+        if self._n_updates % self.target_update_interval == 0:
+            polyak_update(policy.critics.parameters(), policy.critic_targets.parameters(), self.tau)
+
+    def _record_sac(self, figures: SACFigures) -> None:
+        """Log the figures of a training round: losses, the actor's entropy and the temperature's."""
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/critic_loss", float(np.mean(figures.critic_losses)))
+        self.logger.record("train/actor_loss", float(np.mean(figures.actor_losses)))
+        self.logger.record("train/actor_entropy", float(np.mean(figures.actor_entropies)))
+        self._record_temperature(figures.entropies, figures.alpha_gradients)

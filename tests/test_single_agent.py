@@ -1,0 +1,216 @@
+"""SoftDQN and DiscreteSAC on single-agent Gymnasium envs: learning, save/load, observation kinds,
+SB3's tooling and bad input."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.evaluation import evaluate_policy
+
+from sb3_hgrn import DiscreteSAC, SoftDQN
+from sb3_hgrn.cli import main
+from sb3_hgrn.common.soft_math import sac_next_value, soft_value
+
+ALGORITHMS = {"SoftDQN": SoftDQN, "DiscreteSAC": DiscreteSAC}
+SMALL = dict(
+    learning_starts=16, batch_size=8, buffer_size=500, train_freq=4, policy_kwargs=dict(net_arch=[16])
+)
+
+ZOO_SCHEDULE = dict(
+    learning_rate=2.3e-3, batch_size=64, learning_starts=1000, train_freq=256, gradient_steps=128, n_steps=3,
+    target_entropy_ratio=0.05, policy_kwargs=dict(net_arch=[64, 64]),
+)  # fmt: skip
+"""The RL Zoo's DQN schedule for CartPole-v1 with 3-step returns and smaller networks."""
+CARTPOLE = {
+    "SoftDQN": dict(ZOO_SCHEDULE, target_update_interval=10),  # env steps: a copy per round
+    "DiscreteSAC": dict(ZOO_SCHEDULE, tau=1.0, target_update_interval=128),  # gradient steps: likewise
+}
+"""Settings that learn CartPole-v1 within :data:`CARTPOLE_STEPS` (seeds 0, 1 and 2 checked by hand)."""
+CARTPOLE_STEPS = 25_000
+
+
+class DictObservation(gym.ObservationWrapper):
+    """CartPole with its observation split into a dict of two Boxes."""
+
+    def __init__(self, env: gym.Env):
+        super().__init__(env)
+        self.observation_space = gym.spaces.Dict(
+            {
+                "position": gym.spaces.Box(-np.inf, np.inf, (2,)),
+                "velocity": gym.spaces.Box(-np.inf, np.inf, (2,)),
+            }
+        )
+
+    def observation(self, observation: np.ndarray) -> dict[str, np.ndarray]:
+        return {"position": observation[[0, 2]], "velocity": observation[[1, 3]]}
+
+
+class ImageEnv(gym.Env):
+    """36 x 36 one-channel images (the smallest NatureCNN takes); reward 1 for the action that
+    matches the image's brightness, 8-step episodes."""
+
+    observation_space = gym.spaces.Box(0, 255, (36, 36, 1), dtype=np.uint8)
+    action_space = gym.spaces.Discrete(2)
+
+    def reset(self, seed=None, options=None):
+        super().reset(seed=seed)
+        self._t = 0
+        return self._draw(), {}
+
+    def _draw(self) -> np.ndarray:
+        self._bright = int(self.np_random.integers(2))
+        return np.full((36, 36, 1), 200 * self._bright, dtype=np.uint8)
+
+    def step(self, action):
+        reward = float(action == self._bright)
+        self._t += 1
+        return self._draw(), reward, False, self._t >= 8, {}
+
+
+class ContinuousEnv(gym.Env):
+    observation_space = gym.spaces.Box(-1, 1, (2,))
+    action_space = gym.spaces.Box(-1, 1, (1,))
+
+
+class MultiDiscreteEnv(ContinuousEnv):
+    action_space = gym.spaces.MultiDiscrete([2, 3])
+
+
+@pytest.mark.parametrize("name", ALGORITHMS)
+def test_learns_cartpole(name):
+    model = ALGORITHMS[name]("MlpPolicy", "CartPole-v1", seed=0, **CARTPOLE[name]).learn(CARTPOLE_STEPS)
+    env = gym.make("CartPole-v1")
+    env.reset(seed=1000)
+    mean_return, _ = evaluate_policy(model, env, n_eval_episodes=10, deterministic=True)
+    assert mean_return >= 400
+
+
+@pytest.mark.parametrize("name", ALGORITHMS)
+def test_save_load_gives_identical_predictions(name, tmp_path):
+    model = ALGORITHMS[name]("MlpPolicy", "CartPole-v1", seed=1, **SMALL).learn(200)
+    observations = np.random.default_rng(0).normal(size=(32, 4)).astype(np.float32)
+    model.save(tmp_path / "model.zip")
+    loaded = ALGORITHMS[name].load(tmp_path / "model.zip")
+    for deterministic in (True, False):
+        th.manual_seed(3)
+        expected, _ = model.predict(observations, deterministic=deterministic)
+        th.manual_seed(3)
+        actual, _ = loaded.predict(observations, deterministic=deterministic)
+        np.testing.assert_array_equal(actual, expected)
+    assert loaded.policy.temperature.alpha.item() == model.policy.temperature.alpha.item()
+    assert (
+        loaded.temperature.optimizer.state_dict()["state"].keys()
+        == model.temperature.optimizer.state_dict()["state"].keys()
+    )
+
+
+@pytest.mark.parametrize("name", ALGORITHMS)
+@pytest.mark.parametrize(
+    "policy, make_env",
+    [
+        ("MlpPolicy", lambda: gym.make("CartPole-v1")),
+        ("MultiInputPolicy", lambda: DictObservation(gym.make("CartPole-v1"))),
+        ("CnnPolicy", ImageEnv),
+    ],
+    ids=["box", "dict", "image"],
+)
+def test_trains_and_acts_on_every_observation_kind(name, policy, make_env):
+    env = make_vec_env(make_env, n_envs=2, seed=0)
+    options = {**SMALL, "policy_kwargs": {}} if policy == "CnnPolicy" else SMALL
+    model = ALGORITHMS[name](policy, env, seed=0, **options).learn(80)
+    assert model._n_updates > 0
+    actions, _ = model.predict(env.reset(), deterministic=False)
+    assert actions.shape == (2,) and env.action_space.contains(int(actions[0]))
+    evaluate_policy(model, env, n_eval_episodes=2)
+
+
+@pytest.mark.parametrize("name", ALGORITHMS)
+def test_logs_the_temperature_and_calls_callbacks(name, tmp_path):
+    class Count(BaseCallback):
+        calls = 0
+
+        def _on_step(self) -> bool:
+            Count.calls += 1
+            return True
+
+    model = ALGORITHMS[name]("MlpPolicy", "CartPole-v1", seed=0, tensorboard_log=str(tmp_path), **SMALL)
+    model.learn(100, callback=Count())
+    assert Count.calls == 100
+    figures = model.logger.name_to_value
+    assert {"train/alpha", "train/entropy", "train/target_entropy", "train/alpha_grad"} <= set(figures)
+    assert figures["train/target_entropy"] == pytest.approx(0.2 * np.log(2))
+    assert (tmp_path / f"{name}_1").is_dir()
+
+
+def test_n_step_targets_and_learned_temperature_move_alpha():
+    model = SoftDQN("MlpPolicy", "CartPole-v1", seed=0, n_steps=3, **SMALL).learn(200)
+    assert model.policy.temperature.alpha.item() != pytest.approx(0.1)
+    model = DiscreteSAC("MlpPolicy", "CartPole-v1", seed=0, learn_alpha=False, **SMALL).learn(200)
+    assert model.policy.temperature.alpha.item() == pytest.approx(0.1)
+
+
+def test_targets_are_the_shared_soft_values():
+    model = SoftDQN("MlpPolicy", "CartPole-v1", seed=0, **SMALL)
+    q = th.tensor([[1.0, 3.0]])
+    alpha = model.policy.temperature.per_agent(None)
+    assert soft_value(q, alpha).item() == pytest.approx(0.1 * np.log(np.exp(10) + np.exp(30)), rel=1e-6)
+    logits = th.tensor([[0.0, np.log(3.0)]])
+    expected = 0.25 * (1.0 - 0.1 * np.log(0.25)) + 0.75 * (3.0 - 0.1 * np.log(0.75))
+    assert sac_next_value(q, logits, alpha).item() == pytest.approx(expected, rel=1e-6)
+
+
+@pytest.mark.parametrize("name", ALGORITHMS)
+@pytest.mark.parametrize("env_class, kind", [(ContinuousEnv, "Box"), (MultiDiscreteEnv, "MultiDiscrete")])
+def test_rejects_action_spaces_other_than_discrete(name, env_class, kind):
+    with pytest.raises(TypeError, match=f"{name} needs an env with a Discrete action space, got {kind}"):
+        ALGORITHMS[name]("MlpPolicy", env_class())
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (dict(actor_loss="mse"), "actor_loss must be one of"),
+        (dict(alpha_entropy="critic"), "alpha_entropy must be one of"),
+        (dict(actor_steps=0), "actor_steps must be a positive integer, got 0"),
+        (dict(policy_kwargs=dict(n_critics=0)), "n_critics must be a positive integer, got 0"),
+    ],
+)
+def test_discrete_sac_names_bad_options(options, message):
+    with pytest.raises(ValueError, match=message):
+        DiscreteSAC("MlpPolicy", "CartPole-v1", **options)
+
+
+def test_cli_trains_a_single_agent_preset(tmp_path, capsys):
+    arguments = ["train", "--env", "CartPole-v1", "--preset", "soft_dqn", "--folder", str(tmp_path)]
+    small = ["--timesteps", "300", "--verbose", "0", "--param", "learning_starts=50", "buffer_size=1000"]
+    assert main([*arguments, *small]) == 0
+    folder = tmp_path / "CartPole-v1" / "soft_dqn" / "seed_0"
+    assert (folder / "model.zip").is_file() and (folder / "eval.json").is_file()
+    SoftDQN.load(folder / "model.zip")
+    assert "soft_dqn on CartPole-v1 (seed 0): return" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        main([*arguments, *small])
+    assert "holds a finished run (eval.json); pass --overwrite" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--env", "Pendulum-v1"], "has no settings for the env 'Pendulum-v1'"),
+        (
+            ["--env", "CartPole-v1", "--param", "policy_kwargs.features_extractor_class=Resnet"],
+            "CartPole-v1.policy_kwargs.features_extractor_class 'Resnet' is not one of NatureCNN",
+        ),
+        (["--env", "CartPole-v1", "--param", "n_timesteps=0"], "CartPole-v1.n_timesteps must be a positive"),
+        (["--env", "CartPole-v1", "--budget", "ci"], "--budget applies to graph envs"),
+        (["--env", "CartPole-v1", "--param", "no_such_option=1"], "Cannot build SoftDQN on CartPole-v1"),
+    ],
+)
+def test_cli_names_bad_single_agent_input(extra, message, tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(["train", "--preset", "soft_dqn", "--folder", str(tmp_path), *extra])
+    assert message in capsys.readouterr().err
