@@ -95,7 +95,7 @@ def check_rewards(rewards: np.ndarray, n_agents: int, when: str) -> None:
         raise ValueError(
             f"The env returned rewards beyond the bound |reward| <= {MAX_ABS_REWARD:g}: {rewards[slot]:g} "
             f"for {slot_name(slot, n_agents)} {when} ({int((~bounded).sum())} of {len(rewards)} slots); "
-            "scale the env's rewards down (docs/usage.md, 'Rewards')."
+            "scale the env's rewards down (docs/reliability.md, 'Rewards')."
         )
 
 

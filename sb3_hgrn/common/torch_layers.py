@@ -44,5 +44,9 @@ class AgentViewCNN(BaseFeaturesExtractor):
         self.linear = nn.Sequential(nn.Linear(in_channels * height * width, features_dim), nn.ReLU())
 
     def forward(self, observations: th.Tensor) -> th.Tensor:
-        """:param observations: ``(batch, H, W, C)``. :return: ``(batch, features_dim)``."""
+        """The features of channel-last views.
+
+        :param observations: ``(batch, H, W, C)``.
+        :return: ``(batch, features_dim)``.
+        """
         return self.linear(self.cnn(observations.permute(0, 3, 1, 2)))

@@ -12,6 +12,8 @@
 - :mod:`sb3_hgrn.experiments.table1`: the paper's Table 1 sweep, resumable, and its tables.
 - :mod:`sb3_hgrn.experiments.figures`: the paper's figures (CTC curves, alpha, transfer, p_alpha).
 - :mod:`sb3_hgrn.experiments.sweep`: grids of presets, seeds and argument values on one env.
+- :mod:`sb3_hgrn.experiments.jobs`: the sweeps' runs as ``sb3-hgrn train`` processes, a few at a time.
+- :mod:`sb3_hgrn.experiments.cells`: the figures and text of a results table's cells.
 - :mod:`sb3_hgrn.experiments.backends`: where the sweeps' runs execute (local processes, Ray tasks).
 """
 
