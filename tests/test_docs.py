@@ -46,6 +46,11 @@ from sb3_hgrn import SoftHGRN, make_graph_vec_env
 env = make_graph_vec_env("surviving_v0", n_envs=2, seed=0, env_kwargs={"n_agents": 10})
 model = SoftHGRN("GraphPolicy", env, policy_kwargs={"hidden_dim": 16})
 """,
+    "single_agent.md": """
+from tests.test_single_agent import ImageEnv
+
+image_env = ImageEnv()
+""",
     "reliability.md": """
 from sb3_hgrn import SoftHGRN, make_graph_vec_env
 from tests.toy_envs import NeighborBitEnv
