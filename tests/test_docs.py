@@ -19,7 +19,7 @@ from tests.doc_snippets import DOCS, python_blocks
 
 REPO = DOCS.parent
 SITE_PACKAGES = ("mkdocs", "material", "mkdocstrings", "mkdocstrings_handlers.python")
-NOT_GUIDES = ("results.md",)
+NOT_GUIDES = tuple(path.name for path in DOCS.glob("results*.md"))
 """Pages whose blocks are not Python to run: the measured results, with their shell commands."""
 OPTIONAL = ("magent2", "mpe2", "supersuit", "pygame")
 """Packages of the ``extra`` dependencies that some pages' examples import."""
