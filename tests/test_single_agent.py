@@ -83,7 +83,8 @@ class MultiDiscreteEnv(ContinuousEnv):
 
 @pytest.mark.parametrize("name", ALGORITHMS)
 def test_learns_cartpole(name):
-    model = ALGORITHMS[name]("MlpPolicy", "CartPole-v1", seed=0, **CARTPOLE[name]).learn(CARTPOLE_STEPS)
+    train_env = make_vec_env("CartPole-v1", n_envs=1, seed=0)
+    model = ALGORITHMS[name]("MlpPolicy", train_env, seed=0, **CARTPOLE[name]).learn(CARTPOLE_STEPS)
     env = gym.make("CartPole-v1")
     env.reset(seed=1000)
     mean_return, _ = evaluate_policy(model, env, n_eval_episodes=10, deterministic=True)
@@ -201,12 +202,13 @@ def test_cli_trains_a_single_agent_preset(tmp_path, capsys):
 @pytest.mark.parametrize(
     "extra, message",
     [
-        (["--env", "Pendulum-v1"], "has no settings for the env 'Pendulum-v1'"),
+        (["--env", "Pendulum-v1"], "hyperparams/soft_dqn.yml have no settings for the env 'Pendulum-v1'"),
         (
             ["--env", "CartPole-v1", "--param", "policy_kwargs.features_extractor_class=Resnet"],
             "CartPole-v1.policy_kwargs.features_extractor_class 'Resnet' is not one of NatureCNN",
         ),
         (["--env", "CartPole-v1", "--param", "n_timesteps=0"], "CartPole-v1.n_timesteps must be a positive"),
+        (["--env", "CartPole-v1", "--config", "no_such_file.yml"], "Cannot read the hyperparameter file"),
         (["--env", "CartPole-v1", "--budget", "ci"], "--budget applies to graph envs"),
         (["--env", "CartPole-v1", "--param", "no_such_option=1"], "Cannot build SoftDQN on CartPole-v1"),
     ],
