@@ -449,7 +449,7 @@ def _train_single_agent(args: argparse.Namespace) -> int:
             **parse_assignments(args.param, "--param"),
             "env_kwargs": parse_assignments(args.env_param, "--env-param"),
         },
-        config_file=args.config,
+        config_files=args.config or (),
         overwrite=args.overwrite,
         verbose=args.verbose,
         device=args.device,

@@ -179,17 +179,23 @@ def packaged_config_name(env: str) -> str:
     return f"hyperparams/{env}.yml"
 
 
-def load_config_file(path: str | os.PathLike) -> dict[str, Any]:
-    """Read and check a config file of one's own (``train --config``): the format of the packaged
-    files, with every section optional."""
+def read_yaml_file(path: str | os.PathLike, what: str = "config file") -> Any:
+    """The YAML contents of ``path``; a :class:`ConfigError` naming ``what`` and the file when it
+    cannot be read or is not YAML."""
     try:
         text = Path(path).read_text(encoding="utf-8")
     except OSError as error:
-        raise ConfigError(f"Cannot read the config file {path}: {error.strerror}.") from error
+        raise ConfigError(f"Cannot read the {what} {path}: {error.strerror}.") from error
     try:
-        config = yaml.safe_load(text)
+        return yaml.safe_load(text)
     except yaml.YAMLError as error:
-        raise ConfigError(f"The config file {path} is not valid YAML: {error}") from error
+        raise ConfigError(f"The {what} {path} is not valid YAML: {error}") from error
+
+
+def load_config_file(path: str | os.PathLike) -> dict[str, Any]:
+    """Read and check a config file of one's own (``train --config``): the format of the packaged
+    files, with every section optional."""
+    config = read_yaml_file(path)
     config = {} if config is None else config
     _check_config(config, str(path), complete=False)
     return config

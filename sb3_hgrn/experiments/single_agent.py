@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Sequence
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -24,7 +25,7 @@ from stable_baselines3.common.monitor import Monitor
 
 from sb3_hgrn.common import torch_layers
 from sb3_hgrn.common.files import save_model_atomically, write_text_atomically
-from sb3_hgrn.experiments.config import ConfigError
+from sb3_hgrn.experiments.config import ConfigError, read_yaml_file
 from sb3_hgrn.presets import merge
 
 SINGLE_AGENT_PRESETS = ("soft_dqn", "discrete_sac")
@@ -70,36 +71,37 @@ def algorithm_class(preset: str) -> type[BaseAlgorithm]:
     )
 
 
-def read_hyperparams(preset: str, path: str | os.PathLike | None = None) -> tuple[dict[str, Any], str]:
-    """The settings of every env in ``path`` (default: the packaged ``hyperparams/<preset>.yml``) and
-    how messages name that file."""
+def read_hyperparams(preset: str, path: str | os.PathLike | None = None) -> dict[str, dict[str, Any]]:
+    """The settings of every env in ``path`` (default: the packaged ``hyperparams/<preset>.yml``)."""
     if path is None:
         where = f"hyperparams/{preset}.yml"
         text = (resources.files("sb3_hgrn") / "hyperparams" / f"{preset}.yml").read_text(encoding="utf-8")
+        table = yaml.safe_load(text)
     else:
         where = str(path)
-        try:
-            text = Path(path).read_text(encoding="utf-8")
-        except OSError as error:
-            raise ConfigError(f"Cannot read the hyperparameter file {path}: {error.strerror}.") from error
-    try:
-        table = yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        raise ConfigError(f"The hyperparameter file {where} is not valid YAML: {error}") from error
+        table = read_yaml_file(path, "hyperparameter file")
     if not isinstance(table, dict) or not all(isinstance(entry, dict) for entry in table.values()):
         raise ConfigError(f"The hyperparameter file {where} must map env ids to mappings of settings.")
-    return table, where
+    return table
 
 
 def env_settings(
-    preset: str, env: str, params: dict[str, Any] | None = None, path: str | os.PathLike | None = None
+    preset: str,
+    env: str,
+    params: dict[str, Any] | None = None,
+    config_files: Sequence[str | os.PathLike] = (),
 ) -> dict[str, Any]:
-    """The settings of ``env`` for ``preset`` with ``params`` merged over them (``policy_kwargs`` key by
-    key), the features extractor named in ``policy_kwargs`` turned into its class."""
-    table, where = read_hyperparams(preset, path)
-    if env not in table:
-        raise ConfigError(f"{where} has no settings for the env {env!r}; it has: {', '.join(table)}.")
-    settings = merge(table[env], params or {})
+    """The settings of ``env`` for ``preset``: the packaged file's, those of ``config_files`` merged
+    over them in order, then ``params`` (``policy_kwargs`` key by key), the features extractor named
+    in ``policy_kwargs`` turned into its class."""
+    where = " and ".join([f"hyperparams/{preset}.yml", *map(str, config_files)])
+    tables = [read_hyperparams(preset), *(read_hyperparams(preset, path) for path in config_files)]
+    if not any(env in table for table in tables):
+        known = sorted({name for table in tables for name in table})
+        raise ConfigError(f"{where} have no settings for the env {env!r}; they have: {', '.join(known)}.")
+    settings: dict[str, Any] = {}
+    for layer in [*(table.get(env, {}) for table in tables), params or {}]:
+        settings = merge(settings, layer)
     n_timesteps = settings.get("n_timesteps")
     if not isinstance(n_timesteps, int | float) or isinstance(n_timesteps, bool) or n_timesteps < 1:
         raise ConfigError(
@@ -152,7 +154,7 @@ def train_single_agent(
     folder: str | os.PathLike,
     timesteps: int | None = None,
     params: dict[str, Any] | None = None,
-    config_file: str | os.PathLike | None = None,
+    config_files: Sequence[str | os.PathLike] = (),
     overwrite: bool = False,
     **kwargs: Any,
 ) -> dict[str, Any]:
@@ -167,7 +169,7 @@ def train_single_agent(
     folder = Path(folder)
     if (folder / "eval.json").exists() and not overwrite:
         raise ConfigError(f"{folder} holds a finished run (eval.json); pass --overwrite to train it again.")
-    settings = env_settings(preset, env, params, config_file)
+    settings = env_settings(preset, env, params, config_files)
     folder.mkdir(parents=True, exist_ok=True)
     model = make_model(preset, env, settings, seed, str(folder / "tb"), **kwargs)
     steps = timesteps or settings["n_timesteps"]
