@@ -1,14 +1,19 @@
 import math
 
+import numpy as np
 import pytest
 import torch as th
 
+from sb3_hgrn import SACHGRN, DiscreteSAC, SoftDQN, SoftHGRN
 from sb3_hgrn.common.temperature import (
+    FALLBACK_ALPHA,
     EntropyTemperature,
     TemperatureController,
+    alpha_from_rewards,
     categorical_entropy,
     target_entropy,
 )
+from tests.toy_envs import TagEnv, bit_vec_env
 
 
 def test_target_entropy_and_categorical_entropy():
@@ -118,3 +123,53 @@ def test_bad_temperature_arguments():
         TemperatureController(EntropyTemperature(), 0.1, optimizer="rmsprop")
     with pytest.raises(ValueError, match="max_step_ratio"):
         TemperatureController(EntropyTemperature(), 0.1, max_step_ratio=1.0)
+
+
+def test_auto_alpha_is_a_tenth_of_the_rewards_spread():
+    rewards = np.array([0.0, 0.2, -0.2, 0.0], dtype=np.float32)
+    assert alpha_from_rewards(rewards) == pytest.approx(0.1 * rewards.astype(np.float64).std())
+    assert alpha_from_rewards(100 * rewards) == pytest.approx(100 * alpha_from_rewards(rewards))
+    for constant in (np.full(1000, -0.01, np.float32), np.zeros(5), np.zeros(0)):
+        assert alpha_from_rewards(constant) == FALLBACK_ALPHA  # float rounding is no spread
+
+
+def small_rewards_tag_env() -> TagEnv:
+    """The tagging task with rewards 100 times smaller: the values' differences are about 0.001."""
+    env = TagEnv(4, n_actions=9, p_target=0.5, penalty=0.5)
+    step = env.step_arrays
+    env.step_arrays = lambda actions: (lambda o, r, te, tr, i: (o, r / 100, te, tr, i))(*step(actions))
+    return env
+
+
+@pytest.mark.parametrize("algorithm", [SoftHGRN, SACHGRN])
+def test_auto_alpha_starts_at_the_first_gradient_step_from_the_stored_rewards(algorithm, tmp_path):
+    from sb3_hgrn import make_graph_vec_env
+
+    env = make_graph_vec_env(small_rewards_tag_env, n_envs=2, seed=0)
+    small = dict(learning_starts=64, batch_size=4, train_freq=1, policy_kwargs=dict(hidden_dim=8, n_heads=1))
+    model = algorithm("GraphPolicy", env, alpha_init="auto", learn_alpha=False, seed=0, **small)
+    assert model.policy.temperature.alpha.item() == pytest.approx(FALLBACK_ALPHA)
+    model.learn(64 + 8)
+    stored = model.replay_buffer.rewards[: model.replay_buffer.pos]
+    assert model.policy.temperature.alpha.item() == pytest.approx(alpha_from_rewards(stored), rel=1e-5)
+    assert model.policy.temperature.alpha.item() < 0.01  # a fixed start of 0.1 is 10 times too hot here
+    model.save(tmp_path / "model")
+    loaded = algorithm.load(tmp_path / "model", env=env)
+    loaded.replay_buffer.rewards[:] *= 1000  # other rewards: a resumed model must not start again
+    loaded.learn(16, reset_num_timesteps=False)
+    assert loaded.policy.temperature.alpha.item() == model.policy.temperature.alpha.item()
+
+
+@pytest.mark.parametrize("algorithm", [SoftDQN, DiscreteSAC])
+def test_auto_alpha_of_the_single_agent_classes(algorithm):
+    model = algorithm(
+        "MlpPolicy", "CartPole-v1", alpha_init="auto", learn_alpha=False, learning_starts=50, seed=0
+    )
+    model.learn(60)  # CartPole's reward is always 1: no spread, the fallback
+    assert model.policy.temperature.alpha.item() == pytest.approx(FALLBACK_ALPHA)
+
+
+@pytest.mark.parametrize("alpha_init", [0.0, -1.0, "automatic", True])
+def test_bad_alpha_init_is_named(alpha_init):
+    with pytest.raises(ValueError, match="alpha_init"):
+        SoftHGRN("GraphPolicy", bit_vec_env(), alpha_init=alpha_init)

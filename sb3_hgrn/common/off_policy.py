@@ -285,7 +285,7 @@ class GraphOffPolicyAlgorithm(AlgorithmNamedRuns, TemperatureLearner, OffPolicyA
         gradient_steps: int,
         target_update_interval: int,
         target_entropy_ratio: float,
-        alpha_init: float,
+        alpha_init: float | str,
         learn_alpha: bool,
         alpha_optimizer: str,
         alpha_learning_rate: float,
@@ -346,11 +346,9 @@ class GraphOffPolicyAlgorithm(AlgorithmNamedRuns, TemperatureLearner, OffPolicyA
         )
         self.sequence_length = sequence_length
         self.target_update_interval = target_update_interval
-        self.target_entropy_ratio = target_entropy_ratio
-        self.alpha_init = alpha_init
-        self.learn_alpha = learn_alpha
-        self.alpha_optimizer = alpha_optimizer
-        self.alpha_learning_rate = alpha_learning_rate
+        self._set_temperature_options(
+            target_entropy_ratio, alpha_init, learn_alpha, alpha_optimizer, alpha_learning_rate
+        )
         self.stochastic = stochastic
         self.exploration_fraction = exploration_fraction
         self.exploration_initial_eps = exploration_initial_eps

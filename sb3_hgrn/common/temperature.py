@@ -9,6 +9,13 @@ the policy is too greedy. As in the paper, one update changes alpha by at most `
 to the gradient (Adam normalises gradients, so a gradient bound would not bound its steps). Alpha
 stays above ``min_alpha``.
 
+With ``alpha_init="auto"`` alpha starts, at the first gradient step, at ``0.1`` times the standard
+deviation of the rewards stored by then (the agents' rewards of the warm-up steps), so that it starts
+on the scale of the differences between the actions' values whatever the env's reward scale (0.1
+when the stored rewards do not vary). A fixed start far above that scale keeps the policy close to
+uniform, and its soft targets close to the values of the random policy, for the hundreds of updates
+alpha takes to come down at 1 % per update (``docs/results_defaults.md``).
+
 With several agent groups every group has its own alpha and its own target from its own action
 count, and each group's alpha follows the mean entropy of that group's agents. A group absent from
 a batch (no living agent of it) is left exactly as it was by that update: its alpha and its
@@ -20,6 +27,7 @@ shared by all groups and does advance.
 from __future__ import annotations
 
 import math
+import numbers
 from typing import Any
 
 import numpy as np
@@ -27,6 +35,35 @@ import torch as th
 from torch import nn
 
 ALPHA_OPTIMIZERS = {"adam": th.optim.Adam, "sgd": th.optim.SGD}
+
+AUTO_ALPHA = "auto"
+"""``alpha_init`` value that starts alpha from the stored rewards' scale (see :func:`alpha_from_rewards`)."""
+
+AUTO_ALPHA_REWARD_SCALE = 0.1
+"""``alpha_init="auto"`` starts alpha at this multiple of the stored rewards' standard deviation."""
+
+FALLBACK_ALPHA = 0.1
+"""Alpha of ``alpha_init="auto"`` before the first gradient step, and when the rewards do not vary."""
+
+
+def check_alpha_init(alpha_init: float | str) -> None:
+    """Raise ``ValueError`` unless ``alpha_init`` is a number > 0 or ``"auto"``."""
+    if alpha_init == AUTO_ALPHA:
+        return
+    if isinstance(alpha_init, bool) or not isinstance(alpha_init, numbers.Real) or not alpha_init > 0:
+        raise ValueError(f'alpha_init must be a number > 0 or "auto", got {alpha_init!r}.')
+
+
+def alpha_from_rewards(rewards: np.ndarray) -> float:
+    """The starting alpha of ``alpha_init="auto"``: :data:`AUTO_ALPHA_REWARD_SCALE` times the standard
+    deviation of ``rewards`` (the per-agent rewards stored so far, any shape), or
+    :data:`FALLBACK_ALPHA` when there are none or they do not vary."""
+    rewards = np.asarray(rewards, dtype=np.float64)
+    if not rewards.size:
+        return FALLBACK_ALPHA
+    spread, level = float(rewards.std()), float(np.abs(rewards.mean()))
+    varies = math.isfinite(spread) and spread > 1e-6 * level and spread > 0  # not float rounding alone
+    return AUTO_ALPHA_REWARD_SCALE * spread if varies else FALLBACK_ALPHA
 
 
 class EntropyTemperature(nn.Module):
@@ -170,15 +207,34 @@ class TemperatureLearner:
 
     policy: Any
     logger: Any
-    alpha_init: float
+    replay_buffer: Any
+    alpha_init: float | str
     target_entropy_ratio: float
     learn_alpha: bool
     alpha_optimizer: str
     alpha_learning_rate: float
+    _n_updates: int
+
+    def _set_temperature_options(
+        self,
+        target_entropy_ratio: float,
+        alpha_init: float | str,
+        learn_alpha: bool,
+        alpha_optimizer: str,
+        alpha_learning_rate: float,
+    ) -> None:
+        """Check and keep the temperature options (see the algorithms' parameters)."""
+        check_alpha_init(alpha_init)
+        self.target_entropy_ratio = target_entropy_ratio
+        self.alpha_init = alpha_init
+        self.learn_alpha = learn_alpha
+        self.alpha_optimizer = alpha_optimizer
+        self.alpha_learning_rate = alpha_learning_rate
 
     def _setup_temperature(self) -> None:
-        """Reset alpha to ``alpha_init`` and build the controller toward every group's target entropy."""
-        self.policy.temperature.reset(self.alpha_init)
+        """Reset alpha to ``alpha_init`` (:data:`FALLBACK_ALPHA` until the first gradient step with
+        ``"auto"``) and build the controller toward every group's target entropy."""
+        self.policy.temperature.reset(FALLBACK_ALPHA if self.alpha_init == AUTO_ALPHA else self.alpha_init)
         self.target_entropy = [
             target_entropy(self.target_entropy_ratio, n) for n in self.policy.action_counts
         ]
@@ -188,6 +244,20 @@ class TemperatureLearner:
             self.alpha_optimizer,
             self.alpha_learning_rate,
         )
+
+    def _stored_rewards(self) -> np.ndarray:
+        """The rewards in the replay buffer (SB3's or the graph one), those of agents gone before
+        they acted left out: ``(n_stored, ...)`` or flat."""
+        buffer = self.replay_buffer
+        rows = slice(None) if buffer.full else slice(0, buffer.pos)
+        alive = getattr(buffer, "alive", None)
+        return buffer.rewards[rows] if alive is None else buffer.rewards[rows][alive[rows]]
+
+    def _start_temperature(self) -> None:
+        """Before the first gradient step of a model with ``alpha_init="auto"``: set alpha from the
+        stored rewards (:func:`alpha_from_rewards`). Later calls, and resumed models, change nothing."""
+        if self.alpha_init == AUTO_ALPHA and self._n_updates == 0:
+            self.policy.temperature.reset(alpha_from_rewards(self._stored_rewards()))
 
     def _learns_alpha(self) -> bool:
         """Whether training steps alpha (``learn_alpha``)."""

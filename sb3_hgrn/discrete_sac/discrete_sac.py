@@ -44,7 +44,8 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
         is trained toward) or ``"actor"`` (the actor's own).
     :param actor_steps: actor gradient steps per critic step.
     :param target_entropy_ratio: the target entropy is ``target_entropy_ratio * log(n_actions)``.
-    :param alpha_init: initial temperature.
+    :param alpha_init: initial temperature, or ``"auto"``: 0.1 times the standard deviation of the
+        rewards stored at the first gradient step (see :mod:`sb3_hgrn.common.temperature`).
     :param learn_alpha: learn the temperature (``False`` keeps ``alpha_init``).
     :param alpha_optimizer: ``"adam"`` or ``"sgd"`` for the temperature.
     :param alpha_learning_rate: learning rate of the temperature optimiser.
@@ -82,7 +83,7 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
         alpha_entropy: str = "boltzmann",
         actor_steps: int = 1,
         target_entropy_ratio: float = 0.2,
-        alpha_init: float = 0.1,
+        alpha_init: float | str = 0.1,
         learn_alpha: bool = True,
         alpha_optimizer: str = "adam",
         alpha_learning_rate: float = 1e-3,
@@ -130,11 +131,9 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
         self.actor_loss = actor_loss
         self.alpha_entropy = alpha_entropy
         self.actor_steps = actor_steps
-        self.target_entropy_ratio = target_entropy_ratio
-        self.alpha_init = alpha_init
-        self.learn_alpha = learn_alpha
-        self.alpha_optimizer = alpha_optimizer
-        self.alpha_learning_rate = alpha_learning_rate
+        self._set_temperature_options(
+            target_entropy_ratio, alpha_init, learn_alpha, alpha_optimizer, alpha_learning_rate
+        )
         self.max_grad_norm = max_grad_norm
         if _init_setup_model:
             self._setup_model()
@@ -144,6 +143,7 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
         self._setup_temperature()
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
+        self._start_temperature()
         policy = self.policy
         policy.set_training_mode(True)
         self._update_learning_rate([policy.actor_optimizer, policy.critic_optimizer])

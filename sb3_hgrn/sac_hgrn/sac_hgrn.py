@@ -93,7 +93,7 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         gradient_steps: int = 1,
         target_update_interval: int = 5,
         target_entropy_ratio: float = 0.2,
-        alpha_init: float = 0.1,
+        alpha_init: float | str = 0.1,
         learn_alpha: bool = True,
         alpha_optimizer: str = "adam",
         alpha_learning_rate: float = 1e-3,
@@ -184,6 +184,7 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         return self.policy.logits(unroll(self.policy.actor, steps, graphs, state), groups)
 
     def train(self, gradient_steps: int, batch_size: int = 32) -> None:
+        self._start_temperature()
         policy = self.policy
         policy.set_training_mode(True)
         self._update_learning_rate([policy.actor_optimizer, policy.critic_optimizer])

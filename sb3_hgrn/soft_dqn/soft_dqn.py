@@ -40,7 +40,8 @@ class SoftDQN(AlgorithmNamedRuns, TemperatureLearner, DQN):
     env steps; ``learning_starts`` steps of uniform random actions).
 
     :param target_entropy_ratio: the target entropy is ``target_entropy_ratio * log(n_actions)``.
-    :param alpha_init: initial temperature.
+    :param alpha_init: initial temperature, or ``"auto"``: 0.1 times the standard deviation of the
+        rewards stored at the first gradient step (see :mod:`sb3_hgrn.common.temperature`).
     :param learn_alpha: learn the temperature (``False`` keeps ``alpha_init``).
     :param alpha_optimizer: ``"adam"`` or ``"sgd"`` for the temperature.
     :param alpha_learning_rate: learning rate of the temperature optimiser.
@@ -72,7 +73,7 @@ class SoftDQN(AlgorithmNamedRuns, TemperatureLearner, DQN):
         n_steps: int = 1,
         target_update_interval: int = 10_000,
         target_entropy_ratio: float = 0.2,
-        alpha_init: float = 0.1,
+        alpha_init: float | str = 0.1,
         learn_alpha: bool = True,
         alpha_optimizer: str = "adam",
         alpha_learning_rate: float = 1e-3,
@@ -88,11 +89,9 @@ class SoftDQN(AlgorithmNamedRuns, TemperatureLearner, DQN):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ):
-        self.target_entropy_ratio = target_entropy_ratio
-        self.alpha_init = alpha_init
-        self.learn_alpha = learn_alpha
-        self.alpha_optimizer = alpha_optimizer
-        self.alpha_learning_rate = alpha_learning_rate
+        self._set_temperature_options(
+            target_entropy_ratio, alpha_init, learn_alpha, alpha_optimizer, alpha_learning_rate
+        )
         super().__init__(
             policy,
             check_discrete_env(env, "SoftDQN", verbose),
@@ -127,6 +126,7 @@ class SoftDQN(AlgorithmNamedRuns, TemperatureLearner, DQN):
         self._setup_temperature()
 
     def train(self, gradient_steps: int, batch_size: int = 100) -> None:
+        self._start_temperature()
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
         losses, entropies, alpha_gradients = [], [], []

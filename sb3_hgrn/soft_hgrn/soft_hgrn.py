@@ -54,7 +54,8 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
     :param gradient_steps: gradient steps per training round.
     :param target_update_interval: gradient steps between target updates.
     :param target_entropy_ratio: ``p_alpha``; the target entropy is ``p_alpha * log(n_actions)``.
-    :param alpha_init: initial temperature.
+    :param alpha_init: initial temperature, or ``"auto"``: 0.1 times the standard deviation of the
+        rewards stored at the first gradient step (see :mod:`sb3_hgrn.common.temperature`).
     :param learn_alpha: learn the temperature (``False`` keeps ``alpha_init``).
     :param alpha_optimizer: ``"adam"`` or ``"sgd"`` for the temperature.
     :param alpha_learning_rate: learning rate of the temperature optimiser.
@@ -89,7 +90,7 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
         gradient_steps: int = 1,
         target_update_interval: int = 5,
         target_entropy_ratio: float = 0.2,
-        alpha_init: float = 0.1,
+        alpha_init: float | str = 0.1,
         learn_alpha: bool = True,
         alpha_optimizer: str = "adam",
         alpha_learning_rate: float = 1e-3,
@@ -149,6 +150,7 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
         return soft_q_next_value(next_q, alpha, self.stochastic)
 
     def train(self, gradient_steps: int, batch_size: int = 32) -> None:
+        self._start_temperature()
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
         q_net, q_net_target = self.policy.q_net, self.policy.q_net_target
