@@ -173,3 +173,27 @@ def test_auto_alpha_of_the_single_agent_classes(algorithm):
 def test_bad_alpha_init_is_named(alpha_init):
     with pytest.raises(ValueError, match="alpha_init"):
         SoftHGRN("GraphPolicy", bit_vec_env(), alpha_init=alpha_init)
+
+
+@pytest.mark.parametrize("algorithm", [SoftHGRN, SACHGRN])
+def test_alpha_max_step_bounds_every_update_of_the_algorithms(algorithm, tmp_path):
+    env = bit_vec_env()
+    small = dict(learning_starts=8, batch_size=2, train_freq=1, policy_kwargs=dict(hidden_dim=8, n_heads=1))
+    model = algorithm(
+        "GraphPolicy",
+        env,
+        alpha_max_step=0.05,
+        alpha_learning_rate=10.0,
+        alpha_optimizer="sgd",
+        seed=0,
+        **small,
+    )
+    alphas = []
+    model.learn(16 * 8, callback=lambda *_: alphas.append(model.policy.temperature.alpha.item()) or True)
+    ratios = np.array(alphas[1:]) / np.array(alphas[:-1])
+    moved = ratios[ratios != 1.0]
+    assert moved.size and np.allclose(np.abs(moved - 1.0), 0.05, rtol=1e-4)  # the bound, not the default 1 %
+    model.save(tmp_path / "model")
+    assert algorithm.load(tmp_path / "model", env=env).temperature.max_step_ratio == 0.05
+    with pytest.raises(ValueError, match="alpha_max_step"):
+        algorithm("GraphPolicy", env, alpha_max_step=1.0)

@@ -289,6 +289,7 @@ class GraphOffPolicyAlgorithm(AlgorithmNamedRuns, TemperatureLearner, OffPolicyA
         learn_alpha: bool,
         alpha_optimizer: str,
         alpha_learning_rate: float,
+        alpha_max_step: float,
         stochastic: bool,
         exploration_fraction: float,
         exploration_initial_eps: float | None,
@@ -347,7 +348,12 @@ class GraphOffPolicyAlgorithm(AlgorithmNamedRuns, TemperatureLearner, OffPolicyA
         self.sequence_length = sequence_length
         self.target_update_interval = target_update_interval
         self._set_temperature_options(
-            target_entropy_ratio, alpha_init, learn_alpha, alpha_optimizer, alpha_learning_rate
+            target_entropy_ratio,
+            alpha_init,
+            learn_alpha,
+            alpha_optimizer,
+            alpha_learning_rate,
+            alpha_max_step,
         )
         self.stochastic = stochastic
         self.exploration_fraction = exploration_fraction

@@ -66,6 +66,12 @@ def alpha_from_rewards(rewards: np.ndarray) -> float:
     return AUTO_ALPHA_REWARD_SCALE * spread if varies else FALLBACK_ALPHA
 
 
+def check_max_step_ratio(max_step_ratio: float) -> None:
+    """Raise ``ValueError`` unless ``max_step_ratio`` (``alpha_max_step``) lies in ``(0, 1)``."""
+    if not 0.0 < max_step_ratio < 1.0:
+        raise ValueError(f"alpha_max_step (max_step_ratio) must lie in (0, 1), got {max_step_ratio}.")
+
+
 class EntropyTemperature(nn.Module):
     """The temperature alpha of every agent group as a learnable parameter ``(n_groups,)`` (raw alpha,
     or its log with ``log_space``).
@@ -152,8 +158,7 @@ class TemperatureController:
             raise ValueError(f"alpha_optimizer must be one of {sorted(ALPHA_OPTIMIZERS)}, got {optimizer!r}.")
         self.temperature = temperature
         self.target = th.as_tensor(target, dtype=th.float32).reshape(-1)
-        if not 0.0 < max_step_ratio < 1.0:
-            raise ValueError(f"max_step_ratio must lie in (0, 1), got {max_step_ratio}.")
+        check_max_step_ratio(max_step_ratio)
         self.max_step_ratio = max_step_ratio
         self.min_alpha = min_alpha
         self.optimizer = ALPHA_OPTIMIZERS[optimizer]([temperature.param], lr=learning_rate)
@@ -213,6 +218,7 @@ class TemperatureLearner:
     learn_alpha: bool
     alpha_optimizer: str
     alpha_learning_rate: float
+    alpha_max_step: float
     _n_updates: int
 
     def _set_temperature_options(
@@ -222,14 +228,17 @@ class TemperatureLearner:
         learn_alpha: bool,
         alpha_optimizer: str,
         alpha_learning_rate: float,
+        alpha_max_step: float,
     ) -> None:
         """Check and keep the temperature options (see the algorithms' parameters)."""
         check_alpha_init(alpha_init)
+        check_max_step_ratio(alpha_max_step)
         self.target_entropy_ratio = target_entropy_ratio
         self.alpha_init = alpha_init
         self.learn_alpha = learn_alpha
         self.alpha_optimizer = alpha_optimizer
         self.alpha_learning_rate = alpha_learning_rate
+        self.alpha_max_step = alpha_max_step
 
     def _setup_temperature(self) -> None:
         """Reset alpha to ``alpha_init`` (:data:`FALLBACK_ALPHA` until the first gradient step with
@@ -243,6 +252,7 @@ class TemperatureLearner:
             th.tensor(self.target_entropy),
             self.alpha_optimizer,
             self.alpha_learning_rate,
+            max_step_ratio=self.alpha_max_step,
         )
 
     def _stored_rewards(self) -> np.ndarray:

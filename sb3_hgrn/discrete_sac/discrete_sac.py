@@ -49,6 +49,7 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
     :param learn_alpha: learn the temperature (``False`` keeps ``alpha_init``).
     :param alpha_optimizer: ``"adam"`` or ``"sgd"`` for the temperature.
     :param alpha_learning_rate: learning rate of the temperature optimiser.
+    :param alpha_max_step: one update moves alpha by at most this fraction of its value.
     :param max_grad_norm: gradient-norm clip of the actor and of the critics.
     :param policy_kwargs: SB3's ``DQNPolicy`` options for every network, plus ``n_critics`` and
         ``alpha_log_space``.
@@ -87,6 +88,7 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
         learn_alpha: bool = True,
         alpha_optimizer: str = "adam",
         alpha_learning_rate: float = 1e-3,
+        alpha_max_step: float = 0.01,
         max_grad_norm: float = 10.0,
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
@@ -132,7 +134,12 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
         self.alpha_entropy = alpha_entropy
         self.actor_steps = actor_steps
         self._set_temperature_options(
-            target_entropy_ratio, alpha_init, learn_alpha, alpha_optimizer, alpha_learning_rate
+            target_entropy_ratio,
+            alpha_init,
+            learn_alpha,
+            alpha_optimizer,
+            alpha_learning_rate,
+            alpha_max_step,
         )
         self.max_grad_norm = max_grad_norm
         if _init_setup_model:

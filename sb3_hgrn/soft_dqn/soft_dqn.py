@@ -45,6 +45,7 @@ class SoftDQN(AlgorithmNamedRuns, TemperatureLearner, DQN):
     :param learn_alpha: learn the temperature (``False`` keeps ``alpha_init``).
     :param alpha_optimizer: ``"adam"`` or ``"sgd"`` for the temperature.
     :param alpha_learning_rate: learning rate of the temperature optimiser.
+    :param alpha_max_step: one update moves alpha by at most this fraction of its value.
     :param policy_kwargs: SB3's ``DQNPolicy`` options, plus ``alpha_log_space``.
     """
 
@@ -77,6 +78,7 @@ class SoftDQN(AlgorithmNamedRuns, TemperatureLearner, DQN):
         learn_alpha: bool = True,
         alpha_optimizer: str = "adam",
         alpha_learning_rate: float = 1e-3,
+        alpha_max_step: float = 0.01,
         exploration_fraction: float = 0.1,
         exploration_initial_eps: float = 0.0,
         exploration_final_eps: float = 0.0,
@@ -90,7 +92,12 @@ class SoftDQN(AlgorithmNamedRuns, TemperatureLearner, DQN):
         _init_setup_model: bool = True,
     ):
         self._set_temperature_options(
-            target_entropy_ratio, alpha_init, learn_alpha, alpha_optimizer, alpha_learning_rate
+            target_entropy_ratio,
+            alpha_init,
+            learn_alpha,
+            alpha_optimizer,
+            alpha_learning_rate,
+            alpha_max_step,
         )
         super().__init__(
             policy,

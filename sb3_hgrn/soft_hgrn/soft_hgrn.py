@@ -59,6 +59,7 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
     :param learn_alpha: learn the temperature (``False`` keeps ``alpha_init``).
     :param alpha_optimizer: ``"adam"`` or ``"sgd"`` for the temperature.
     :param alpha_learning_rate: learning rate of the temperature optimiser.
+    :param alpha_max_step: one update moves alpha by at most this fraction of its value.
     :param stochastic: ``False`` gives the deterministic ``-S`` variant.
     :param exploration_fraction: fraction of training over which epsilon decays.
     :param exploration_initial_eps: initial probability of a uniform random action per agent
@@ -94,6 +95,7 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
         learn_alpha: bool = True,
         alpha_optimizer: str = "adam",
         alpha_learning_rate: float = 1e-3,
+        alpha_max_step: float = 0.01,
         stochastic: bool = True,
         exploration_fraction: float = 0.1,
         exploration_initial_eps: float | None = None,
@@ -128,6 +130,7 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
             learn_alpha=learn_alpha,
             alpha_optimizer=alpha_optimizer,
             alpha_learning_rate=alpha_learning_rate,
+            alpha_max_step=alpha_max_step,
             stochastic=stochastic,
             exploration_fraction=exploration_fraction,
             exploration_initial_eps=exploration_initial_eps,
