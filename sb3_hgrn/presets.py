@@ -65,6 +65,8 @@ PAPER_SCHEDULE: dict[str, Any] = dict(
     gamma=0.95,
     target_update_interval=5,
     learning_starts=0,
+    alpha_learning_rate=1e-3,  # the paper's temperature rule: at most 1 % of alpha per update
+    alpha_max_step=0.01,
 )
 """The paper's schedule; the buffer holds 50,000 joint transitions (``make_model`` scales it)."""
 

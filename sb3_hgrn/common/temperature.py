@@ -4,10 +4,10 @@ The target is ``target_entropy_ratio * log(n_actions)``. After each critic step 
 entropy ``H`` of the batch is measured and the learned parameter (alpha, or ``log(alpha)`` with
 ``log_space``) takes one optimiser step on ``loss = param * (H - H_target)``: its gradient
 ``H - H_target`` lowers alpha while the policy is more random than the target and raises it while
-the policy is too greedy. As in the paper, one update changes alpha by at most ``max_step_ratio``
-(1 %) of its value, whatever the optimiser: the bound applies to the step the optimiser took, not
-to the gradient (Adam normalises gradients, so a gradient bound would not bound its steps). Alpha
-stays above ``min_alpha``.
+the policy is too greedy. One update changes alpha by at most ``max_step_ratio`` of its value (the
+algorithms' ``alpha_max_step``: 1 % as in the paper, 5 % by default for SoftHGRN), whatever the
+optimiser: the bound applies to the step the optimiser took, not to the gradient (Adam normalises
+gradients, so a gradient bound would not bound its steps). Alpha stays above ``min_alpha``.
 
 With ``alpha_init="auto"`` alpha starts, at the first gradient step, at ``0.1`` times the standard
 deviation of the rewards stored by then (the agents' rewards of the warm-up steps), so that it starts

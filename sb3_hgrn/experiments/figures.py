@@ -533,7 +533,9 @@ def draw_alpha(done: Sequence[Job]) -> tuple[list[dict[str, Any]], Figure]:
     axes[0].set_title("temperature alpha", fontsize=10)
     axes[1].axhline(0.0, color="grey", lw=1)
     axes[1].set_ylabel("gradient (nats)")
-    axes[1].set_title("alpha's gradient H - H_target (each update moves alpha by at most 1 %)", fontsize=10)
+    axes[1].set_title(
+        "alpha's gradient H - H_target (each update moves alpha by at most alpha_max_step)", fontsize=10
+    )
     axes[2].set_ylabel("entropy (nats)")
     axes[2].set_title(
         "mean entropy H of softmax(Q / alpha) on the training batches, its target H_target\n"
