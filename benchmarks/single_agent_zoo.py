@@ -4,7 +4,7 @@ Run: nice -n 10 python benchmarks/single_agent_zoo.py --envs CartPole-v1 --seeds
      [--algorithms soft_dqn discrete_sac dqn] [--results benchmarks/single_agent_zoo.json]
 
 Every algorithm trains each env for the RL Zoo's DQN budget (``n_timesteps`` of rl_zoo3's
-``hyperparams/dqn.yml``, read from the installed ``rl-zoo3`` package: ``pip install rl-zoo3``) with
+``hyperparams/dqn.yml``, read from the installed ``rl-zoo3`` package: ``pip install -e ".[zoo]"``) with
 seeds 0..N-1; DQN with the Zoo's tuned settings for the env, SoftDQN and DiscreteSAC with those of
 ``sb3_hgrn/hyperparams/<algorithm>.yml``. The score of a run is the mean return of its greedy policy
 over ``--eval-episodes`` episodes of an env seeded ``seed + 1000``. The table gives the IQM over seeds
@@ -79,7 +79,10 @@ def zoo_dqn_settings(env: str) -> dict[str, Any]:
         return dict(MINATAR_DQN)
     spec = importlib.util.find_spec("rl_zoo3")
     if spec is None or not spec.submodule_search_locations:
-        raise SystemExit("The RL Zoo's hyperparameters need the rl-zoo3 package: pip install rl-zoo3")
+        raise SystemExit(
+            "The RL Zoo's hyperparameters need the rl-zoo3 package: "
+            'pip install -e ".[zoo]" (or pip install rl-zoo3)'
+        )
     path = Path(spec.submodule_search_locations[0]) / "hyperparams" / "dqn.yml"
     table = yaml.safe_load(path.read_text(encoding="utf-8"))
     if env not in table:
