@@ -10,7 +10,7 @@ import sys
 import time
 from collections import deque
 from collections.abc import Iterable, Mapping
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch as th
@@ -255,7 +255,8 @@ class GraphOffPolicyAlgorithm(AlgorithmNamedRuns, TemperatureLearner, OffPolicyA
     warm-up), reset at episode starts, and stored with each transition. Exploration mixes in a
     uniform random action per agent with probability ``exploration_rate``, scheduled linearly from
     ``exploration_initial_eps`` to ``exploration_final_eps`` over ``exploration_fraction`` of
-    training (by default off for stochastic policies, 1.0 -> 0.05 for ``stochastic=False``).
+    training (by default ``stochastic_exploration_eps`` throughout for stochastic policies, 1.0 -> 0.05
+    for ``stochastic=False``).
 
     The soft algorithms share a temperature alpha learned toward the target entropy
     ``target_entropy_ratio * log(n_actions)`` (see :mod:`sb3_hgrn.common.temperature`); the policy
@@ -268,6 +269,8 @@ class GraphOffPolicyAlgorithm(AlgorithmNamedRuns, TemperatureLearner, OffPolicyA
 
     policy: GraphPolicy
     replay_buffer: GraphReplayBuffer
+    stochastic_exploration_eps: ClassVar[float] = 0.0
+    """Epsilon of a stochastic policy when ``exploration_initial_eps``/``_final_eps`` are ``None``."""
 
     def __init__(
         self,
@@ -319,9 +322,9 @@ class GraphOffPolicyAlgorithm(AlgorithmNamedRuns, TemperatureLearner, OffPolicyA
         )
         check_model_arguments(type(self), arguments)
         if exploration_initial_eps is None:
-            exploration_initial_eps = 0.0 if stochastic else 1.0
+            exploration_initial_eps = self.stochastic_exploration_eps if stochastic else 1.0
         if exploration_final_eps is None:
-            exploration_final_eps = 0.0 if stochastic else 0.05
+            exploration_final_eps = self.stochastic_exploration_eps if stochastic else 0.05
         super().__init__(
             policy,
             env,

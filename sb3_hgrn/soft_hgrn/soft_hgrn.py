@@ -63,8 +63,8 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
     :param stochastic: ``False`` gives the deterministic ``-S`` variant.
     :param exploration_fraction: fraction of training over which epsilon decays.
     :param exploration_initial_eps: initial probability of a uniform random action per agent
-        (``None``: 0 for the stochastic policy, 1 for ``stochastic=False``).
-    :param exploration_final_eps: final epsilon (``None``: 0 stochastic, 0.05 deterministic).
+        (``None``: 0.3 for the stochastic policy, 1 for ``stochastic=False``).
+    :param exploration_final_eps: final epsilon (``None``: 0.3 stochastic, 0.05 deterministic).
     :param max_grad_norm: gradient-norm clip of the Q-network.
     :param hidden_dtype: storage dtype of recurrent states in the replay buffer.
     :param policy_kwargs: network options (``hidden_dim``, ``n_heads``, ``head_dim``,
@@ -74,6 +74,7 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"GraphPolicy": SoftHGRNPolicy}
     policy: SoftHGRNPolicy
+    stochastic_exploration_eps: ClassVar[float] = 0.3
 
     def __init__(
         self,
