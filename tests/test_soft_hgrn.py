@@ -112,7 +112,8 @@ def test_save_load_round_trip_keeps_predictions(tmp_path):
 
 def test_the_soft_policy_collects_with_epsilon_0_3_unless_told_otherwise():
     env = bit_env(n_envs=2)
-    assert (quick_model(env).exploration_initial_eps, quick_model(env).exploration_final_eps) == (0.3, 0.3)
+    default = quick_model(env)
+    assert (default.exploration_initial_eps, default.exploration_final_eps) == (0.3, 0.3)
     chosen = quick_model(env, exploration_initial_eps=1.0, exploration_final_eps=0.0)
     assert (chosen.exploration_initial_eps, chosen.exploration_final_eps) == (1.0, 0.0)
     sac = SACHGRN("GraphPolicy", env, policy_kwargs=dict(hidden_dim=16, n_heads=2))
