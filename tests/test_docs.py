@@ -14,7 +14,7 @@ import sys
 import pytest
 
 import sb3_hgrn
-from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
+from sb3_hgrn.common.tensorboard import AlgorithmNamedRuns
 from tests.doc_snippets import DOCS, python_blocks
 
 REPO = DOCS.parent
@@ -24,7 +24,8 @@ NOT_GUIDES = tuple(path.name for path in DOCS.glob("results*.md"))
 OPTIONAL = ("magent2", "mpe2", "supersuit", "pygame")
 """Packages of the ``extra`` dependencies that some pages' examples import."""
 LEARN_CAP = 1_000
-"""Agent-steps a page's ``learn`` call trains at most here: the blocks check the API, not the learning."""
+"""Agent-steps (env steps for a single-agent model) a page's ``learn`` call trains at most here: the
+blocks check the API, not the learning."""
 
 PAGE_SETUP = {
     "own_env.md": """
@@ -127,12 +128,12 @@ def test_the_python_blocks_of_a_page_run(doc, tmp_path, monkeypatch):
     ``examples/`` linked in), each ``learn`` cut to :data:`LEARN_CAP` agent-steps."""
     monkeypatch.chdir(tmp_path)
     (tmp_path / "examples").symlink_to(REPO / "examples")
-    learn = GraphOffPolicyAlgorithm.learn
+    learn = AlgorithmNamedRuns.learn  # every sb3_hgrn algorithm's, graph and single-agent
 
     def capped(self, total_timesteps, *args, **kwargs):
         return learn(self, min(total_timesteps, LEARN_CAP), *args, **kwargs)
 
-    monkeypatch.setattr(GraphOffPolicyAlgorithm, "learn", capped)
+    monkeypatch.setattr(AlgorithmNamedRuns, "learn", capped)
     namespace: dict = {"__name__": "doc_snippet"}
     exec(compile(PAGE_SETUP.get(doc, ""), f"<setup of docs/{doc}>", "exec"), namespace)
     for block in python_blocks(doc):

@@ -43,13 +43,13 @@ def test_uses_a_costly_but_necessary_action(algorithm):
 @pytest.mark.parametrize("algorithm", ALGORITHMS)
 def test_remembers_a_cue_with_recurrence_and_not_without(algorithm):
     """The cue is seen at the first step and asked for four steps later (1 per agent when named). With
-    memory trained through time (runs of 8 steps) every seed names it; without memory an agent
-    guesses (2 per team episode in expectation). From stored states alone (``sequence_length=1``)
-    both algorithms stay near chance at this budget (docs/results.md)."""
+    memory trained through time (runs of 8 steps) the model names it in every episode (seeds 0-2 all
+    did, docs/results_defaults.md); without memory an agent guesses (2 per team episode in
+    expectation). From stored states alone (``sequence_length=1``) both algorithms stay near chance
+    at this budget."""
     make_env = lambda: CueMemoryEnv(4, delay=3)  # noqa: E731
-    for seed in (0, 1):
-        model = train_on(algorithm, make_env, 12_000, seed=seed, sequence_length=8)
-        assert greedy_return(model, make_env, seed=100 + seed) == pytest.approx(4.0), f"seed {seed}"
+    model = train_on(algorithm, make_env, 12_000, sequence_length=8)
+    assert greedy_return(model, make_env) == pytest.approx(4.0)
     forgetful = train_on(algorithm, make_env, 12_000, sequence_length=8, policy_kwargs=dict(recurrent=False))
     assert greedy_return(forgetful, make_env, n_episodes=32) <= 2.75
 

@@ -382,10 +382,11 @@ def test_a_stopped_ray_task_stops_its_run(local_ray, busy_cores, tmp_path, lost)
 
 
 @pytest.mark.parametrize("backend_name", ["local", "ray"])
-def test_a_sweep_stopped_with_ctrl_c_leaves_no_run_behind(busy_cores, tmp_path, request, backend_name):
-    """Ctrl-C (KeyboardInterrupt in the sweep's main thread) while two runs train: both are gone."""
-    if backend_name == "ray":
-        request.getfixturevalue("local_ray")
+def test_a_sweep_stopped_with_ctrl_c_leaves_no_run_behind(tmp_path, request, backend_name):
+    """Ctrl-C (KeyboardInterrupt in the sweep's main thread) while two runs train: both are gone.
+    The local runs start beside two busy cores; the Ray runs without them, because Ray's own
+    processes on two loaded cores take minutes to start two runs."""
+    request.getfixturevalue("local_ray" if backend_name == "ray" else "busy_cores")
     folders = [tmp_path / "uav_mbs_v0" / "soft_hgrn" / f"seed_{seed}" for seed in (0, 1)]
     jobs = [Job("uav_mbs_v0", "soft_hgrn", seed, folder) for seed, folder in enumerate(folders)]
     pressed = []

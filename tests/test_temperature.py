@@ -5,6 +5,7 @@ import pytest
 import torch as th
 
 from sb3_hgrn import SACHGRN, DiscreteSAC, SoftDQN, SoftHGRN
+from sb3_hgrn.common.soft_math import sample_actions
 from sb3_hgrn.common.temperature import (
     FALLBACK_ALPHA,
     EntropyTemperature,
@@ -14,6 +15,22 @@ from sb3_hgrn.common.temperature import (
     target_entropy,
 )
 from tests.toy_envs import TagEnv, bit_vec_env
+
+
+@pytest.mark.parametrize("shape", [(64, 5), (8, 12, 21)])
+def test_sampled_actions_are_the_draws_of_a_categorical_distribution(shape):
+    """The policies' sampler draws what ``Categorical`` draws from the same generator state, so that
+    runs seeded before it keep their actions; and the draws follow ``softmax(logits)``."""
+    logits = th.randn(*shape) * 3
+    th.manual_seed(0)
+    expected = th.distributions.Categorical(logits=logits).sample()
+    th.manual_seed(0)
+    assert th.equal(sample_actions(logits), expected)
+    many = sample_actions(logits[..., :1, :].expand(*shape[:-2], 20_000, shape[-1]))
+    frequencies = th.nn.functional.one_hot(many, shape[-1]).float().mean(dim=-2)
+    th.testing.assert_close(frequencies, th.softmax(logits[..., 0, :], dim=-1), atol=0.015, rtol=0)
+    with pytest.raises(ValueError, match="logits are not finite"):
+        sample_actions(logits.index_fill(-1, th.tensor([1]), float("nan")))
 
 
 def test_target_entropy_and_categorical_entropy():

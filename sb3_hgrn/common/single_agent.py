@@ -18,6 +18,7 @@ from stable_baselines3.common.torch_layers import (
 from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, ReplayBufferSamples, Schedule
 from stable_baselines3.dqn.policies import DQNPolicy
 
+from sb3_hgrn.common.soft_math import sample_actions
 from sb3_hgrn.common.temperature import EntropyTemperature
 
 TEMPERATURE_SAVE_PARAMS = ["temperature.optimizer"]
@@ -111,7 +112,7 @@ class SoftDiscretePolicy(DQNPolicy):
         logits = self.action_logits(obs)
         if deterministic:
             return logits.argmax(dim=-1)
-        return th.distributions.Categorical(logits=logits).sample()
+        return sample_actions(logits)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         return {**super()._get_constructor_parameters(), "alpha_log_space": self.alpha_log_space}

@@ -31,8 +31,8 @@ class SACFigures:
     critic_losses: list[float] = field(default_factory=list)
     actor_losses: list[float] = field(default_factory=list)
     actor_entropies: list[float] = field(default_factory=list)
-    entropies: list[np.ndarray] = field(default_factory=list)
-    alpha_gradients: list[float] = field(default_factory=list)
+    entropies: list[th.Tensor] = field(default_factory=list)
+    alpha_gradients: list[th.Tensor] = field(default_factory=list)
 
 
 class SoftActorCritic(TemperatureLearner):

@@ -27,6 +27,22 @@ def masked_mean(values: th.Tensor, mask: th.Tensor) -> th.Tensor:
     return (values * mask).sum() / mask.sum().clamp(min=1.0)
 
 
+def sample_actions(logits: th.Tensor) -> th.Tensor:
+    """Actions ``(...)`` drawn from ``softmax(logits)`` ``(..., n_actions)``: the same draws from the
+    same generator state as ``torch.distributions.Categorical(logits=logits).sample()``, without its
+    argument checks, which wait for the device on every call. Logits with a NaN (a diverged network)
+    raise a ``ValueError`` that says so."""
+    probs = th.softmax(logits - logits.logsumexp(dim=-1, keepdim=True), dim=-1)
+    try:
+        actions = th.multinomial(probs.reshape(-1, probs.shape[-1]), 1, True)
+    except RuntimeError as error:  # torch's words: "probability tensor contains either inf, nan or ..."
+        raise ValueError(
+            "Cannot sample actions: the policy's logits are not finite (NaN or inf), so training has "
+            "diverged; a lower learning_rate or max_grad_norm usually prevents it."
+        ) from error
+    return actions.reshape(logits.shape[:-1])
+
+
 def soft_value(q_values: th.Tensor, alpha: th.Tensor) -> th.Tensor:
     """``alpha * logsumexp(Q / alpha)`` over the last axis: ``(...)`` from ``(..., n_actions)``."""
     return (alpha * th.logsumexp(q_values / alpha, dim=-1, keepdim=True)).squeeze(-1)
@@ -118,7 +134,7 @@ def actor_loss(
     alpha = alpha if stochastic else th.zeros_like(alpha)
     if kind == "standard":
         return masked_mean((log_probs.exp() * (alpha * log_probs - q_values)).sum(dim=-1), mask)
-    actions = th.distributions.Categorical(logits=logits.detach()).sample().unsqueeze(-1)
+    actions = sample_actions(logits.detach()).unsqueeze(-1)
     log_prob = log_probs.gather(-1, actions)  # (..., 1), as alpha per entry
     advantage = q_values.gather(-1, actions) - alpha * log_prob.detach()
     return -masked_mean((log_prob * advantage).squeeze(-1), mask)

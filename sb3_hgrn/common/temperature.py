@@ -163,21 +163,20 @@ class TemperatureController:
         self.min_alpha = min_alpha
         self.optimizer = ALPHA_OPTIMIZERS[optimizer]([temperature.param], lr=learning_rate)
 
-    def update(self, entropy: th.Tensor) -> float:
+    def update(self, entropy: th.Tensor) -> th.Tensor:
         """One step toward the target given the measured mean entropy of every group ``(n_groups,)``
         (NaN for a group absent from the batch: its alpha and optimiser state stay as they are);
-        returns alpha's mean gradient."""
+        returns alpha's mean gradient ``()`` on alpha's device (read it once per round: reading it
+        waits for the device)."""
         temperature = self.temperature
-        self.optimizer.zero_grad()
         entropy = entropy.detach().reshape(-1)
         absent = th.isnan(entropy)
         gap = th.where(absent, th.zeros_like(entropy), entropy - self.target.to(entropy))
         before = temperature.alpha.detach().clone()
         kept_param = temperature.param.detach().clone()
         kept_state = self._per_group_state(temperature.param)
-        loss = (temperature.param * gap).sum()  # d loss / d param = H - H_target
-        loss.backward()
-        gradient = float(temperature.param.grad.mean())
+        # The loss is sum(param * (H - H_target)), so its gradient is the gap itself: no backward pass.
+        temperature.param.grad = gap.to(temperature.param).expand_as(temperature.param).clone()
         self.optimizer.step()
         with th.no_grad():
             alpha = temperature.alpha.clamp(
@@ -189,7 +188,8 @@ class TemperatureController:
             state = self.optimizer.state[temperature.param]
             for name, value in kept_state.items():
                 state[name].copy_(th.where(absent, value, state[name]))
-        return gradient
+        temperature.param.grad = None
+        return gap.mean()
 
     def _per_group_state(self, param: nn.Parameter) -> dict[str, th.Tensor]:
         """Copies of the optimiser's state tensors of ``param`` that hold one entry per group
@@ -275,19 +275,19 @@ class TemperatureLearner:
 
     def _update_temperature(
         self, entropy: th.Tensor, groups: th.Tensor | None, alive: th.Tensor
-    ) -> tuple[np.ndarray, float | None]:
+    ) -> tuple[th.Tensor, th.Tensor | None]:
         """Measure the mean policy entropy of every group from the per-agent entropies
         ``(batch, n_agents)`` (or ``(batch,)``) of the living agents (``alive``, same shape, 1 or 0)
-        and step alpha toward the targets; returns the group entropies and alpha's mean gradient
-        (``None`` when alpha is not learned)."""
+        and step alpha toward the targets; returns the group entropies ``(n_groups,)`` and alpha's
+        mean gradient ``()`` (``None`` when alpha is not learned), both left on the device."""
         group_entropy = group_means(entropy.detach(), groups, self.policy.n_groups, alive)
         gradient = self.temperature.update(group_entropy) if self._learns_alpha() else None
-        return group_entropy.cpu().numpy(), gradient
+        return group_entropy, gradient
 
-    def _record_temperature(self, entropies: list[np.ndarray], alpha_gradients: list[float]) -> None:
+    def _record_temperature(self, entropies: list[th.Tensor], alpha_gradients: list[th.Tensor]) -> None:
         """Log the mean policy entropy of the last training round, its target, alpha and its gradient
         (averaged over groups, and per group ``g`` as ``.../group_g`` with several groups)."""
-        entropy = np.nanmean(np.stack(entropies), axis=0)
+        entropy = th.stack(entropies).nanmean(dim=0).cpu().numpy()
         alpha = self.policy.temperature.alpha.detach().cpu().numpy()
         figures = {"entropy": entropy, "target_entropy": np.array(self.target_entropy), "alpha": alpha}
         for name, values in figures.items():
@@ -296,4 +296,4 @@ class TemperatureLearner:
                 for group, value in enumerate(values):
                     self.logger.record(f"train/{name}/group_{group}", float(value))
         if alpha_gradients:
-            self.logger.record("train/alpha_grad", float(np.mean(alpha_gradients)))
+            self.logger.record("train/alpha_grad", float(th.stack(alpha_gradients).mean()))

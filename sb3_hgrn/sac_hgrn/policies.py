@@ -11,6 +11,7 @@ from torch import nn
 
 from sb3_hgrn.common.hgrn import HGRN, GraphBatch
 from sb3_hgrn.common.policies import GraphObs, GraphPolicy
+from sb3_hgrn.common.soft_math import sample_actions
 
 
 class SACHGRNPolicy(GraphPolicy):
@@ -147,7 +148,7 @@ class SACHGRNPolicy(GraphPolicy):
         if deterministic or not self.stochastic:
             actions = logits.argmax(dim=-1)
         else:
-            actions = th.distributions.Categorical(logits=logits).sample()
+            actions = sample_actions(logits)
         return actions.reshape(-1), th.cat(new_states, dim=-1).reshape(n_graphs * n_agents, -1)
 
     def set_training_mode(self, mode: bool) -> None:

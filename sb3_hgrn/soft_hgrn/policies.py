@@ -11,6 +11,7 @@ from torch import nn
 
 from sb3_hgrn.common.hgrn import HGRN
 from sb3_hgrn.common.policies import GraphObs, GraphPolicy
+from sb3_hgrn.common.soft_math import sample_actions
 
 
 class SoftHGRNPolicy(GraphPolicy):
@@ -58,7 +59,7 @@ class SoftHGRNPolicy(GraphPolicy):
             actions = q_values.argmax(dim=-1)
         else:
             logits = q_values / self.temperature.per_agent(groups)
-            actions = th.distributions.Categorical(logits=logits).sample()
+            actions = sample_actions(logits)
         return actions.reshape(-1), new_hidden.reshape(n_graphs * n_agents, -1)
 
     def set_training_mode(self, mode: bool) -> None:
