@@ -30,8 +30,9 @@ def masked_mean(values: th.Tensor, mask: th.Tensor) -> th.Tensor:
 def sample_actions(logits: th.Tensor) -> th.Tensor:
     """Actions ``(...)`` drawn from ``softmax(logits)`` ``(..., n_actions)``: the same draws from the
     same generator state as ``torch.distributions.Categorical(logits=logits).sample()``, without its
-    argument checks, which wait for the device on every call. Logits with a NaN (a diverged network)
-    raise a ``ValueError`` that says so."""
+    argument checks, which wait for the device on every call. On the CPU, logits with a NaN or an inf
+    (a diverged network) raise a ``ValueError`` that says so; on CUDA torch's sampler stops at a
+    device-side assertion instead, since finding them first would wait for the device."""
     probs = th.softmax(logits - logits.logsumexp(dim=-1, keepdim=True), dim=-1)
     try:
         actions = th.multinomial(probs.reshape(-1, probs.shape[-1]), 1, True)
