@@ -293,3 +293,26 @@ def test_memory_limit_comes_from_psutil_else_a_fixed_size(monkeypatch):
         buffers.warn_if_too_large(2 * 2**30, 10)
     with pytest.warns(UserWarning, match="more than 2.00 GiB; lower buffer_size"):
         buffers.warn_if_too_large(2 * 2**30 + 1, 10)
+
+
+def test_return_rms_sums_each_episode_of_the_living_agents_in_time_order():
+    """Rewards 2 ** t, gamma 0.5: an episode of steps 0-1 (returns 2, 2) and one of steps 2-4 (12,
+    16, 16), one slot gone at steps 0-1; then a wrapped buffer holding steps 2-5 of one episode."""
+    buffer = make_buffer(steps=10, gamma=0.5)
+    for t in range(5):
+        data = step_data(t)
+        data["rewards"] = np.full(N_AGENTS * N_COPIES, 2.0**t, dtype=np.float32)
+        data["alive"] = np.ones(N_AGENTS * N_COPIES, dtype=bool)
+        data["alive"][-1] = t >= 2
+        buffer.add(**data)
+    expected = (5 * 4 + 5 * 4 + 6 * 144 + 6 * 256 + 6 * 256) / 28
+    assert buffer.return_rms(0.5) == pytest.approx(np.sqrt(expected))
+    wrapped = make_buffer(steps=4, gamma=0.5)
+    assert wrapped.return_rms(0.5) == 0.0
+    for t in range(6):
+        data = step_data(t)
+        data["rewards"] = np.full(N_AGENTS * N_COPIES, 2.0**t, dtype=np.float32)
+        data["episode_starts"] = np.full(N_AGENTS * N_COPIES, t == 0)
+        wrapped.add(**data)
+    assert wrapped.full and wrapped.pos == 2  # rows hold steps 4, 5, 2, 3
+    assert wrapped.return_rms(0.5) == pytest.approx(np.sqrt((16**2 + 24**2 + 32**2 + 32**2) / 4))

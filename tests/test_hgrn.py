@@ -520,8 +520,8 @@ RANDOM_CASES = [(3, 6, 4), (2, 5, 9)]  # (batch, n_agents, list width); 9 is wid
 @pytest.mark.parametrize("n_groups", [1, 2])
 def test_attention_patterns_satisfy_the_csr_invariants(device, batch, n_agents, width, n_groups):
     """Every CSR tensor the attention builds has sorted, distinct columns in each row (checked by
-    torch), the forward pattern and the transposed one hold the same entries, and the entries are
-    the distinct listed agents: the pattern is exact, not just well formed."""
+    torch), the forward pattern and the transposed one (rows head by head) hold the same entries,
+    and the entries are the distinct listed agents: the pattern is exact, not just well formed."""
     neighbors = random_lists(batch, n_agents, width, seed=n_agents).to(device)
     groups = torch.randint(0, n_groups, (batch, n_agents), device=device)
     graph = GraphBatch(neighbors, groups, n_groups)
@@ -544,7 +544,8 @@ def test_attention_patterns_satisfy_the_csr_invariants(device, batch, n_agents, 
             pattern.shape[::-1],
             check_invariants=True,
         )
-        torch.testing.assert_close(transposed.to_dense(), matrix.to_dense().t())
+        by_head = matrix.to_dense().t().reshape(-1, heads, pattern.shape[0]).transpose(0, 1)
+        torch.testing.assert_close(transposed.to_dense(), by_head.reshape(pattern.shape[::-1]))
     layer = GraphAttention(IN_DIM, OUT_DIM, 2, HEAD_DIM, n_groups=n_groups).double().to(device)
     x = torch.randn(batch, n_agents, IN_DIM, dtype=torch.double, device=device, requires_grad=True)
     with torch.sparse.check_sparse_tensor_invariants():  # every CSR tensor of forward and backward

@@ -150,12 +150,22 @@ def test_auto_alpha_is_a_tenth_of_the_rewards_spread():
         assert alpha_from_rewards(constant) == FALLBACK_ALPHA  # float rounding is no spread
 
 
-def small_rewards_tag_env() -> TagEnv:
-    """The tagging task with rewards 100 times smaller: the values' differences are about 0.001."""
+def tag_env_with_rewards_times(factor: float) -> TagEnv:
+    """The tagging task with its rewards multiplied by ``factor``."""
     env = TagEnv(4, n_actions=9, p_target=0.5, penalty=0.5)
     step = env.step_arrays
-    env.step_arrays = lambda actions: (lambda o, r, te, tr, i: (o, r / 100, te, tr, i))(*step(actions))
+    env.step_arrays = lambda actions: (lambda o, r, te, tr, i: (o, r * factor, te, tr, i))(*step(actions))
     return env
+
+
+def small_rewards_tag_env() -> TagEnv:
+    """The tagging task with rewards 100 times smaller: the values' differences are about 0.001."""
+    return tag_env_with_rewards_times(0.01)
+
+
+def large_rewards_tag_env() -> TagEnv:
+    """The tagging task with rewards 100 times larger: discounted returns of order 100."""
+    return tag_env_with_rewards_times(100.0)
 
 
 @pytest.mark.parametrize("algorithm", [SoftHGRN, SACHGRN])
@@ -214,3 +224,40 @@ def test_alpha_max_step_bounds_every_update_of_the_algorithms(algorithm, tmp_pat
     assert algorithm.load(tmp_path / "model", env=env).temperature.max_step_ratio == 0.05
     with pytest.raises(ValueError, match="alpha_max_step"):
         algorithm("GraphPolicy", env, alpha_max_step=1.0)
+
+
+@pytest.mark.parametrize("algorithm", [SoftHGRN, SACHGRN])
+def test_auto_reward_scale_is_measured_once_and_scales_every_target(algorithm, tmp_path):
+    """``reward_scale="auto"`` becomes one over the stored returns' root mean square at the first
+    gradient step (1 where that is below 1), a resumed model keeps it, and the targets' rewards are
+    the stored ones times it."""
+    from sb3_hgrn import make_graph_vec_env
+
+    env = make_graph_vec_env(large_rewards_tag_env, n_envs=2, seed=0)
+    small = dict(learning_starts=64, batch_size=4, train_freq=1, policy_kwargs=dict(hidden_dim=8, n_heads=1))
+    model = algorithm("GraphPolicy", env, reward_scale="auto", seed=0, **small)
+    assert model.applied_reward_scale == 1.0
+    start, held = model._start_training, []
+    model._start_training = lambda: (held.append(model.replay_buffer.return_rms(model.gamma)), start())
+    model.learn(64 + 24)
+    del model._start_training
+    buffer = model.replay_buffer
+    assert len(held) > 1 and model.applied_reward_scale == pytest.approx(1 / held[0], rel=1e-5)
+    assert model.applied_reward_scale < 0.1  # rewards of 100 here
+    np.random.seed(1)
+    batch, steps = model._sample_runs(64)
+    np.random.seed(1)
+    stored = buffer.sample(64)
+    assert stored.rewards.abs().sum() > 0
+    th.testing.assert_close(batch.rewards, stored.rewards * model.applied_reward_scale)
+    model.save(tmp_path / "model")
+    loaded = algorithm.load(tmp_path / "model", env=env)
+    loaded.replay_buffer.rewards[:] *= 1000
+    loaded.learn(8, reset_num_timesteps=False)
+    assert loaded.applied_reward_scale == model.applied_reward_scale
+    small_env = make_graph_vec_env(small_rewards_tag_env, n_envs=2, seed=0)
+    unscaled = algorithm("GraphPolicy", small_env, reward_scale="auto", seed=0, **small).learn(64 + 8)
+    assert unscaled.replay_buffer.return_rms(unscaled.gamma) < 1 and unscaled.applied_reward_scale == 1.0
+    for bad in (0, -1.0, float("nan"), "big"):
+        with pytest.raises(ValueError, match="reward_scale must be a finite number > 0"):
+            algorithm("GraphPolicy", env, reward_scale=bad, **small)

@@ -100,12 +100,15 @@ class _Pattern:
     heads)`` matrix with exactly ``E`` entries per row, their columns sorted and distinct, so
     ``O(rows * heads * E)`` entries are stored; the values of a matrix on it are laid out as
     ``(rows, heads, E)``. With dummy targets dense right-hand operands get zero rows for them
-    (:func:`_padded`) and products with the transposed matrix keep their first ``rows * heads`` rows.
+    (:func:`_padded`). Index tensors are int32 (the type the sparse kernels compute with) unless the
+    matrix is too large for it.
 
-    The transposed pattern (rows by target, columns by source row) is needed only for gradients, so
-    it is built on first use, once: ``crow_t`` and ``col_t`` are its CSR index tensors and
-    ``transpose`` maps its values to their position in the values of the matrix itself. Acting and
-    target networks, which run without gradients, never build it.
+    The transposed pattern is needed only for gradients, so it is built on first use, once. Its rows
+    come head by head, ``h * n_targets + t`` (a block per head, so no index needs scattering), each
+    holding the source rows ``r * heads + h`` of the entries pointing at ``t`` in increasing order:
+    ``crow_t`` and ``col_t`` are its CSR index tensors and ``transpose`` maps its values to their
+    position in the values of the matrix itself. Acting and target networks, which run without
+    gradients, never build it.
 
     :param targets: ``(rows, E)`` entry targets below ``n_targets`` (see :func:`neighbor_entries`).
     :param heads: attention heads.
@@ -115,34 +118,38 @@ class _Pattern:
     def __init__(self, targets: Tensor, heads: int, n_targets: int) -> None:
         rows, n_entries = targets.shape
         self.targets, self.heads, self.n_targets = targets, heads, n_targets
-        self._head = torch.arange(heads, device=targets.device)
-        self.col = (targets.unsqueeze(1) * heads + self._head.view(1, heads, 1)).reshape(-1)
-        self.crow = torch.arange(0, rows * heads * n_entries + 1, n_entries, device=targets.device)
         self.shape = (rows * heads, n_targets * heads)
+        fits = max(rows * heads * n_entries, *self.shape) < torch.iinfo(torch.int32).max
+        self.index_dtype = torch.int32 if fits else torch.long
+        self._head = torch.arange(heads, device=targets.device, dtype=self.index_dtype)
+        self.col = (targets.to(self.index_dtype).unsqueeze(1) * heads + self._head.view(1, heads, 1)).reshape(
+            -1
+        )
+        self.crow = torch.arange(
+            0, rows * heads * n_entries + 1, n_entries, device=targets.device, dtype=self.index_dtype
+        )
+
+    @functools.cached_property
+    def zero_values(self) -> Tensor:
+        """Zeros ``(rows * heads * E,)``: the values of the matrix that sampled products fill."""
+        return torch.zeros(self.col.numel(), device=self.targets.device)
 
     @functools.cached_property
     def _transposed(self) -> tuple[Tensor, Tensor, Tensor]:
         """``(crow_t, col_t, transpose)``, built once."""
-        heads, head, n_entries = self.heads, self._head, self.targets.shape[1]
-        device = self.targets.device
+        heads, n_entries, dtype = self.heads, self.targets.shape[1], self.index_dtype
         target = self.targets.reshape(-1)  # entry e = r * E + k points at target[e]
-        order = torch.argsort(target, stable=True)  # by target, then by source row
-        count = torch.zeros(self.n_targets, dtype=torch.long, device=device).index_add_(
-            0, target, torch.ones_like(target)
-        )
-        first = torch.cumsum(count, 0) - count
-        sorted_target = target[order]
-        # Transposed row (t, h) holds the count[t] entries pointing at t, by increasing source row.
-        dest = (
-            ((heads - 1) * first[sorted_target] + torch.arange(order.numel(), device=device)).unsqueeze(1)
-            + head * count[sorted_target].unsqueeze(1)
-        ).reshape(-1)
-        source_row = (order // n_entries * heads).unsqueeze(1) + head
-        source = (source_row * n_entries + (order % n_entries).unsqueeze(1)).reshape(-1)
-        transpose = torch.empty_like(dest).scatter_(0, dest, source)
-        col_t = torch.empty_like(dest).scatter_(0, dest, source_row.reshape(-1))
-        crow_t = torch.zeros(self.n_targets * heads + 1, dtype=torch.long, device=device)
-        torch.cumsum(count.unsqueeze(1).expand(self.n_targets, heads).reshape(-1), 0, out=crow_t[1:])
+        sorted_target, order = torch.sort(target, stable=True)  # by target, then by source row
+        every_target = torch.arange(self.n_targets, device=target.device, dtype=target.dtype)
+        ends = torch.searchsorted(sorted_target, every_target, right=True)  # entries at targets <= t
+        source_row, place = order // n_entries, order % n_entries
+        head = self._head.unsqueeze(1)
+        # Block h lists the entries in `order` again, with columns and values of head h.
+        col_t = (source_row.to(dtype) * heads + head).reshape(-1)
+        transpose = ((source_row * heads * n_entries + place).to(dtype) + head * n_entries).reshape(-1)
+        crow_t = torch.zeros(heads * self.n_targets + 1, dtype=dtype, device=target.device)
+        block_ends = ends.to(dtype) + head * target.numel()
+        crow_t[1:] = block_ends.reshape(-1)
         return crow_t, col_t, transpose
 
     @property
@@ -185,17 +192,18 @@ def _matmul(pattern: _Pattern, values: Tensor, dense: Tensor, transposed: bool =
     ``(rows * heads, head_dim)`` if ``transposed``. :return: ``(rows * heads, head_dim)``."""
     values = values.reshape(-1)
     rows, columns = pattern.shape
-    if transposed:
-        matrix = _sparse(pattern.crow_t, pattern.col_t, values[pattern.transpose], (columns, rows))
-        return (matrix @ dense)[:rows]
-    return _sparse(pattern.crow, pattern.col, values, pattern.shape) @ dense
+    if not transposed:
+        return _sparse(pattern.crow, pattern.col, values, pattern.shape) @ dense
+    matrix = _sparse(pattern.crow_t, pattern.col_t, values[pattern.transpose], (columns, rows))
+    by_head = (matrix @ dense).view(pattern.heads, pattern.n_targets, -1)  # rows h * n_targets + t
+    return by_head[:, : rows // pattern.heads].transpose(0, 1).reshape(rows, -1)
 
 
 def _sampled_dot(pattern: _Pattern, left: Tensor, right: Tensor) -> Tensor:
     """Dot products ``left[row] . right[col]`` ``(rows * heads * E,)`` at the entries of ``pattern``;
     ``left`` ``(rows * heads, head_dim)``, ``right`` ``((rows + E) * heads, head_dim)`` (see
     :func:`_padded`)."""
-    zeros = left.new_zeros(pattern.col.numel())
+    zeros = pattern.zero_values.to(left.dtype)
     return torch.sparse.sampled_addmm(
         _sparse(pattern.crow, pattern.col, zeros, pattern.shape), left, right.t(), beta=0.0
     ).values()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import warnings
 from typing import NamedTuple
 
@@ -305,6 +306,25 @@ class GraphReplayBuffer(BaseBuffer):
             self.alive = np.ones(self.rewards.shape, dtype=bool)
         self.__dict__.setdefault("n_steps", 1)
         self.__dict__.setdefault("gamma", 0.99)
+
+    def return_rms(self, gamma: float) -> float:
+        """Root mean square of the ``gamma``-discounted returns of the stored transitions of living
+        agents, summed within each episode over the stored steps in time order (a return still open
+        at the newest step counts the steps stored so far); 0.0 for an empty buffer."""
+        stored = self.buffer_size if self.full else self.pos
+        if stored == 0:
+            return 0.0
+        order = (np.arange(stored) + (self.pos if self.full else 0)) % self.buffer_size
+        rewards, alive = self.rewards[order], self.alive[order]
+        continues = ~self.episode_starts[order][1:, :, None]  # step t + 1 belongs to t's episode
+        returns = np.zeros_like(rewards[0], dtype=np.float64)
+        total, count = 0.0, 0
+        for step in range(stored - 1, -1, -1):
+            following = returns * continues[step] if step < stored - 1 else returns
+            returns = rewards[step] + gamma * following
+            total += float(np.square(returns[alive[step]]).sum())
+            count += int(alive[step].sum())
+        return math.sqrt(total / count) if count else 0.0
 
     def sample(self, batch_size: int, env=None) -> GraphSamples:
         """Draw ``batch_size`` graphs uniformly from the stored steps and copies."""

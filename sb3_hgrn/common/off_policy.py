@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import math
 import os
 import pathlib
 import random
@@ -157,6 +158,19 @@ def check_algorithm_arguments(
         )
 
 
+AUTO_REWARD_SCALE = "auto"
+"""``reward_scale="auto"``: the factor is measured from the replay buffer at the first gradient step
+(``1 / max(1, RMS of the stored discounted returns)``)."""
+
+
+def check_reward_scale(reward_scale: Any) -> None:
+    """Raise a ``ValueError`` unless ``reward_scale`` is a finite number > 0 or ``"auto"``."""
+    if reward_scale == AUTO_REWARD_SCALE:
+        return
+    if not is_number(reward_scale) or not math.isfinite(reward_scale) or reward_scale <= 0:
+        raise ValueError(f'reward_scale must be a finite number > 0 or "auto", got {reward_scale!r}.')
+
+
 def check_hidden_dtype(hidden_dtype: Any, prefix: str = "") -> None:
     """Raise a ``TypeError`` unless ``hidden_dtype`` names a numpy float dtype (the replay buffer's
     storage of recurrent states); ``prefix`` goes before the name in the message."""
@@ -282,6 +296,7 @@ class GraphOffPolicyAlgorithm(AlgorithmNamedRuns, TemperatureLearner, OffPolicyA
         batch_size: int,
         tau: float,
         gamma: float,
+        reward_scale: float | str,
         n_steps: int,
         sequence_length: int,
         train_freq: int | tuple[int, str],
@@ -321,6 +336,7 @@ class GraphOffPolicyAlgorithm(AlgorithmNamedRuns, TemperatureLearner, OffPolicyA
             sequence_length,
         )
         check_model_arguments(type(self), arguments)
+        check_reward_scale(reward_scale)
         if exploration_initial_eps is None:
             exploration_initial_eps = self.stochastic_exploration_eps if stochastic else 1.0
         if exploration_final_eps is None:
@@ -350,6 +366,8 @@ class GraphOffPolicyAlgorithm(AlgorithmNamedRuns, TemperatureLearner, OffPolicyA
         )
         self.sequence_length = sequence_length
         self.target_update_interval = target_update_interval
+        self.reward_scale = reward_scale
+        self.applied_reward_scale = 1.0 if reward_scale == AUTO_REWARD_SCALE else float(reward_scale)
         self._set_temperature_options(
             target_entropy_ratio,
             alpha_init,
@@ -394,10 +412,27 @@ class GraphOffPolicyAlgorithm(AlgorithmNamedRuns, TemperatureLearner, OffPolicyA
 
     def _sample_runs(self, batch_size: int) -> tuple[GraphSamples, list[GraphSamples]]:
         """The ``batch_size`` graphs of one gradient step: ``batch_size // sequence_length`` runs of
-        ``sequence_length`` consecutive steps, as one step-major batch and as the list of its steps
-        (for :func:`unroll`)."""
+        ``sequence_length`` consecutive steps, as one step-major batch (its rewards times
+        :attr:`applied_reward_scale`, for the targets) and as the list of its steps (for
+        :func:`unroll`)."""
         steps = self.replay_buffer.sample_sequences(batch_size // self.sequence_length, self.sequence_length)
-        return concatenated(steps), steps
+        batch = concatenated(steps)
+        return batch._replace(rewards=batch.rewards * self.applied_reward_scale), steps
+
+    def _start_training(self) -> None:
+        """Before the first gradient step: with ``reward_scale="auto"``, measure the factor of the
+        rewards from the replay buffer: one over the root mean square of its discounted returns
+        (:meth:`~sb3_hgrn.common.buffers.GraphReplayBuffer.return_rms`) where that is above 1, else 1
+        (returns larger than one are shrunk, smaller ones left as they are). Then set up the
+        temperature (:meth:`_start_temperature`). Resumed models keep their factor."""
+        if self.reward_scale == AUTO_REWARD_SCALE and self._n_updates == 0:
+            self.applied_reward_scale = 1.0 / max(1.0, self.replay_buffer.return_rms(self.gamma))
+        self.logger.record("train/reward_scale", self.applied_reward_scale)
+        self._start_temperature()
+
+    def _stored_rewards(self) -> np.ndarray:
+        """The stored rewards as the targets see them: times :attr:`applied_reward_scale`."""
+        return super()._stored_rewards() * self.applied_reward_scale
 
     def _learns_alpha(self) -> bool:
         """Whether training steps alpha: only the stochastic variants learn it."""

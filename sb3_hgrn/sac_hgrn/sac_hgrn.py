@@ -87,6 +87,7 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         batch_size: int = 32,
         tau: float = 1.0,
         gamma: float = 0.95,
+        reward_scale: float | str = 1.0,
         n_steps: int = 1,
         sequence_length: int = 1,
         train_freq: int | tuple[int, str] = 4,
@@ -136,6 +137,7 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
             batch_size=batch_size,
             tau=tau,
             gamma=gamma,
+            reward_scale=reward_scale,
             n_steps=n_steps,
             sequence_length=sequence_length,
             train_freq=train_freq,
@@ -186,7 +188,7 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         return self.policy.logits(unroll(self.policy.actor, steps, graphs, state), groups)
 
     def train(self, gradient_steps: int, batch_size: int = 32) -> None:
-        self._start_temperature()
+        self._start_training()
         policy = self.policy
         policy.set_training_mode(True)
         self._update_learning_rate([policy.actor_optimizer, policy.critic_optimizer])

@@ -44,6 +44,11 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
     :param batch_size: graphs per gradient step.
     :param tau: target update coefficient (1.0 = hard copy).
     :param gamma: discount factor.
+    :param reward_scale: factor of the rewards in the Q targets (the envs' rewards, logs and
+        evaluations are untouched), or ``"auto"``: at the first gradient step, one over the root mean
+        square of the discounted returns in the replay buffer where that is above 1, else 1, so the
+        Q-values are of order one at most whatever the env's reward units (logged as
+        ``train/reward_scale``; resumed models keep it).
     :param n_steps: rewards summed per target before bootstrapping (n-step returns, as SB3's
         ``n_steps``; they stop at episode ends).
     :param sequence_length: steps per replayed run: a batch of ``batch_size`` graphs is
@@ -86,6 +91,7 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
         batch_size: int = 32,
         tau: float = 1.0,
         gamma: float = 0.95,
+        reward_scale: float | str = 1.0,
         n_steps: int = 1,
         sequence_length: int = 1,
         train_freq: int | tuple[int, str] = 4,
@@ -121,6 +127,7 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
             batch_size=batch_size,
             tau=tau,
             gamma=gamma,
+            reward_scale=reward_scale,
             n_steps=n_steps,
             sequence_length=sequence_length,
             train_freq=train_freq,
@@ -154,7 +161,7 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
         return soft_q_next_value(next_q, alpha, self.stochastic)
 
     def train(self, gradient_steps: int, batch_size: int = 32) -> None:
-        self._start_temperature()
+        self._start_training()
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
         q_net, q_net_target = self.policy.q_net, self.policy.q_net_target
