@@ -20,12 +20,15 @@ NO_COMMUNICATION = {"communication": "none"}
 NO_MEMORY = {"recurrent": False}
 OWN_GROUP = {"communication": "gat"}  # homogeneous attention: each agent group attends within itself
 
+BASELINE_Q = dict(stochastic=False, reward_scale=1.0)
+"""The Q-learning baselines: greedy, hard-max targets on the env's own rewards (no scaling)."""
+
 PRESETS: dict[str, tuple[type[GraphOffPolicyAlgorithm], dict[str, Any]]] = {
     # baselines
-    "dqn": (SoftHGRN, dict(stochastic=False, policy_kwargs={**NO_COMMUNICATION, **NO_MEMORY})),
-    "commnet": (SoftHGRN, dict(stochastic=False, policy_kwargs={"communication": "mean", **NO_MEMORY})),
-    "dgn": (SoftHGRN, dict(stochastic=False, policy_kwargs={**OWN_GROUP, **NO_MEMORY})),
-    "hgn": (SoftHGRN, dict(stochastic=False, policy_kwargs=dict(NO_MEMORY))),
+    "dqn": (SoftHGRN, dict(BASELINE_Q, policy_kwargs={**NO_COMMUNICATION, **NO_MEMORY})),
+    "commnet": (SoftHGRN, dict(BASELINE_Q, policy_kwargs={"communication": "mean", **NO_MEMORY})),
+    "dgn": (SoftHGRN, dict(BASELINE_Q, policy_kwargs={**OWN_GROUP, **NO_MEMORY})),
+    "hgn": (SoftHGRN, dict(BASELINE_Q, policy_kwargs=dict(NO_MEMORY))),
     "maac": (
         SACHGRN,
         dict(
@@ -67,8 +70,10 @@ PAPER_SCHEDULE: dict[str, Any] = dict(
     learning_starts=0,
     alpha_learning_rate=1e-3,  # the paper's temperature rule: at most 1 % of alpha per update
     alpha_max_step=0.01,
+    reward_scale=1.0,
 )
-"""The paper's schedule; the buffer holds 50,000 joint transitions (``make_model`` scales it)."""
+"""The paper's schedule, on unscaled rewards; the buffer holds 50,000 joint transitions (``make_model``
+scales it)."""
 
 PAPER_BUFFER_TRANSITIONS = 50_000
 PAPER_EXPLORATION = dict(exploration_initial_eps=0.9, exploration_final_eps=0.3, exploration_fraction=0.5)

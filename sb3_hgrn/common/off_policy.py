@@ -285,6 +285,10 @@ class GraphOffPolicyAlgorithm(AlgorithmNamedRuns, TemperatureLearner, OffPolicyA
     replay_buffer: GraphReplayBuffer
     stochastic_exploration_eps: ClassVar[float] = 0.0
     """Epsilon of a stochastic policy when ``exploration_initial_eps``/``_final_eps`` are ``None``."""
+    reward_scale: float | str = 1.0
+    """The ``reward_scale`` argument (models saved before it existed load with 1.0, as they trained)."""
+    applied_reward_scale: float = 1.0
+    """The factor the targets apply to the rewards (``"auto"``'s is measured at the first update)."""
 
     def __init__(
         self,

@@ -91,7 +91,7 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
         batch_size: int = 32,
         tau: float = 1.0,
         gamma: float = 0.95,
-        reward_scale: float | str = 1.0,
+        reward_scale: float | str = "auto",
         n_steps: int = 1,
         sequence_length: int = 1,
         train_freq: int | tuple[int, str] = 4,
