@@ -122,9 +122,8 @@ class _Pattern:
         fits = max(rows * heads * n_entries, *self.shape) < torch.iinfo(torch.int32).max
         self.index_dtype = torch.int32 if fits else torch.long
         self._head = torch.arange(heads, device=targets.device, dtype=self.index_dtype)
-        self.col = (targets.to(self.index_dtype).unsqueeze(1) * heads + self._head.view(1, heads, 1)).reshape(
-            -1
-        )
+        column_of_head = targets.to(self.index_dtype).unsqueeze(1) * heads + self._head.view(1, heads, 1)
+        self.col = column_of_head.reshape(-1)
         self.crow = torch.arange(
             0, rows * heads * n_entries + 1, n_entries, device=targets.device, dtype=self.index_dtype
         )
