@@ -1,7 +1,8 @@
 """Candidate defaults on a suite of eight many-agent envs, 3 seeds each, normalised over the suite.
 
 Run: python benchmarks/defaults_suite.py --folder sweeps/suite [--candidates default gs2:gradient_steps=2]
-     [--presets soft_hgrn dqn dgn] [--seeds 3] [--envs surviving_v0 ...] [--report-only]
+     [--presets soft_hgrn dqn dgn] [--seeds 3] [--envs surviving_v0 ...] [--equal-time-to soft_hgrn]
+     [--report-only]
 
 A candidate is a name and the algorithm arguments it sets over the library defaults
 (``NAME:KEY=VALUE,KEY=VALUE``; ``default`` sets none). For each candidate and each env of
@@ -11,6 +12,11 @@ same evaluation episodes. It prints, per env, each (candidate, preset)'s mean +-
 models' evaluations and their mean CPU seconds of training per run, and over the suite the IQM of the runs'
 normalised scores with its 95 % stratified-bootstrap interval: Random is 0 and the best mean of the
 table on that env is 1 (the ``dqn`` preset is near Random on some envs, so it cannot be the unit).
+
+``--equal-time-to PRESET`` adds, per candidate and env, a run of every other preset at the budget that
+costs it the reference preset's mean CPU seconds of training: its agent-steps times the reference's
+CPU seconds over its own. Each such run sets its schedules (exploration, learning starts) for its own
+budget, as a user with that much time would, and its column is named ``CANDIDATE-time``.
 """
 
 from __future__ import annotations
@@ -74,11 +80,21 @@ def sweep_root(folder: Path, candidate: Candidate, env: SuiteEnv) -> Path:
     return folder / candidate.name / env.name / "default"
 
 
-def run_sweep(folder: Path, candidate: Candidate, env: SuiteEnv, presets: list[str], seeds: int) -> None:
-    """``sb3-hgrn sweep`` of ``presets`` x ``seeds`` with ``candidate``'s arguments on ``env``."""
+def run_sweep(
+    folder: Path,
+    candidate: Candidate,
+    env: SuiteEnv,
+    presets: list[str],
+    seeds: int,
+    timesteps: int | None = None,
+) -> None:
+    """``sb3-hgrn sweep`` of ``presets`` x ``seeds`` with ``candidate``'s arguments on ``env`` (at
+    ``timesteps`` agent-steps per run where given, else the budget's)."""
     command = [sys.executable, "-m", "sb3_hgrn", "sweep", "--env", env.env, "--budget", BUDGET,
                "--presets", *presets, "--seeds", str(seeds), "--jobs", "1", "--threads", "1",
                "--folder", str(folder / candidate.name / env.name)]  # fmt: skip
+    if timesteps is not None:
+        command += ["--timesteps", str(timesteps)]
     if env.config:
         command += ["--config", env.config]
     if candidate.params:
@@ -111,6 +127,35 @@ def run_results(
         return None
     cpu_seconds = [r.get("train_cpu_s", np.nan) for r in results]  # runs before it was recorded: nan
     return np.array([r["mean"] for r in results]), np.array(cpu_seconds)
+
+
+def time_candidate(candidate: Candidate) -> Candidate:
+    """The candidate's equal-time runs: the same arguments, their own folder and column."""
+    return Candidate(f"{candidate.name}-time", candidate.params)
+
+
+def run_equal_time(
+    folder: Path, candidate: Candidate, env: SuiteEnv, reference: str, presets: list[str], seeds: int
+) -> None:
+    """Run each of ``presets`` at the agent-steps that cost it ``reference``'s mean CPU seconds of
+    training on ``env`` (both measured on ``candidate``'s finished runs at the budget)."""
+    reference_result = run_results(folder, candidate, env, reference, seeds)
+    if reference_result is None:
+        raise RuntimeError(f"--equal-time-to {reference}: its runs on {env.name} are unfinished")
+    reference_seconds = float(np.mean(reference_result[1]))
+    for preset in presets:
+        runs = [
+            read_eval(run_folder(sweep_root(folder, candidate, env), env.env, preset, seed))
+            for seed in range(seeds)
+        ]
+        if any(run is None or "train_cpu_s" not in run for run in runs):
+            raise RuntimeError(
+                f"--equal-time-to: {preset} on {env.name} has no finished run with its CPU seconds"
+            )
+        seconds = float(np.mean([run["train_cpu_s"] for run in runs]))
+        timesteps = round(float(np.mean([run["agent_steps"] for run in runs])) * reference_seconds / seconds)
+        print(f"{env.name} {preset}: {timesteps} agent-steps for {reference}'s {reference_seconds:.0f} CPU s")
+        run_sweep(folder, time_candidate(candidate), env, [preset], seeds, timesteps)
 
 
 def cell(scores: np.ndarray, cpu_seconds: np.ndarray) -> str:
@@ -153,22 +198,33 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--folder", type=Path, required=True)
-    parser.add_argument("--candidates", nargs="+", default=["default"], type=Candidate.parse)
+    parser.add_argument("--candidates", nargs="+", default=[Candidate("default", ())], type=Candidate.parse)
     parser.add_argument("--presets", nargs="+", default=["soft_hgrn", "dqn", "dgn"])
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument(
         "--envs", nargs="+", choices=[env.name for env in SUITE], default=[e.name for e in SUITE]
     )
     parser.add_argument(
+        "--equal-time-to", metavar="PRESET", help="also run the other presets for PRESET's CPU seconds"
+    )
+    parser.add_argument(
         "--report-only", action="store_true", help="print the tables of the runs already done"
     )
     args = parser.parse_args()
     envs = [env for env in SUITE if env.name in args.envs]
+    others = [preset for preset in args.presets if preset != args.equal_time_to]
+    if args.equal_time_to and args.equal_time_to not in args.presets:
+        parser.error(f"--equal-time-to {args.equal_time_to}: not among --presets {args.presets}")
     if not args.report_only:
         for candidate in args.candidates:
             for env in envs:
                 run_sweep(args.folder, candidate, env, args.presets, args.seeds)
-    report(args.folder, args.candidates, args.presets, envs, args.seeds)
+                if args.equal_time_to:
+                    run_equal_time(args.folder, candidate, env, args.equal_time_to, others, args.seeds)
+    candidates = list(args.candidates)
+    if args.equal_time_to:
+        candidates += [time_candidate(candidate) for candidate in args.candidates]
+    report(args.folder, candidates, args.presets, envs, args.seeds)
 
 
 if __name__ == "__main__":

