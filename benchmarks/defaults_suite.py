@@ -16,7 +16,7 @@ table on that env is 1 (the ``dqn`` preset is near Random on some envs, so it ca
 ``--equal-time-to PRESET`` adds, per candidate and env, a run of every other preset at the budget that
 costs it the reference preset's mean CPU seconds of training: its agent-steps times the reference's
 CPU seconds over its own. Each such run sets its schedules (exploration, learning starts) for its own
-budget, as a user with that much time would, and its column is named ``CANDIDATE-time``.
+budget, as a user with that much time would; its runs and column are named ``CANDIDATE-time-PRESET``.
 """
 
 from __future__ import annotations
@@ -129,9 +129,10 @@ def run_results(
     return np.array([r["mean"] for r in results]), np.array(cpu_seconds)
 
 
-def time_candidate(candidate: Candidate) -> Candidate:
-    """The candidate's equal-time runs: the same arguments, their own folder and column."""
-    return Candidate(f"{candidate.name}-time", candidate.params)
+def time_candidate(candidate: Candidate, preset: str) -> Candidate:
+    """``preset``'s equal-time runs of the candidate: the same arguments, their own folder (one budget
+    per sweep folder) and column."""
+    return Candidate(f"{candidate.name}-time-{preset}", candidate.params)
 
 
 def run_equal_time(
@@ -155,7 +156,7 @@ def run_equal_time(
         seconds = float(np.mean([run["train_cpu_s"] for run in runs]))
         timesteps = round(float(np.mean([run["agent_steps"] for run in runs])) * reference_seconds / seconds)
         print(f"{env.name} {preset}: {timesteps} agent-steps for {reference}'s {reference_seconds:.0f} CPU s")
-        run_sweep(folder, time_candidate(candidate), env, [preset], seeds, timesteps)
+        run_sweep(folder, time_candidate(candidate, preset), env, [preset], seeds, timesteps)
 
 
 def cell(scores: np.ndarray, cpu_seconds: np.ndarray) -> str:
@@ -223,7 +224,9 @@ def main() -> None:
                     run_equal_time(args.folder, candidate, env, args.equal_time_to, others, args.seeds)
     candidates = list(args.candidates)
     if args.equal_time_to:
-        candidates += [time_candidate(candidate) for candidate in args.candidates]
+        candidates += [
+            time_candidate(candidate, preset) for candidate in args.candidates for preset in others
+        ]
     report(args.folder, candidates, args.presets, envs, args.seeds)
 
 
