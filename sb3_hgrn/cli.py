@@ -196,6 +196,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="act with the online network (Q-network or actor) of a model trained with "
         "policy_kwargs.average_tau",
     )
+    evaluate.add_argument(
+        "--critic",
+        action="store_true",
+        help="SAC-HGRN: act with the first critic's Boltzmann policy softmax(Q / alpha) instead of the "
+        "actor (the policy behaviour_policy=critic collects with)",
+    )
     evaluate.add_argument("--n-envs", type=_positive_int, help="env copies (default: the run's eval_n_envs)")
     evaluate.add_argument("--seed", type=int, help="env seed (default: the run's seed + 1000)")
     evaluate.add_argument(
@@ -509,6 +515,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         trust_config=args.trust_config,
         trust_pickle=args.trust_pickle,
         online=args.online,
+        critic=args.critic,
         **parse_assignments(args.env_param, "--env-param"),
     )
     print(

@@ -381,6 +381,23 @@ def test_evaluate_online_acts_with_the_online_network_of_an_averaging_model(surv
         evaluate_run(online_only, n_episodes=1, online=True)
 
 
+def test_evaluate_critic_acts_with_the_critics_boltzmann_policy(surviving_run, tmp_path):
+    """``--critic`` evaluates a SAC-HGRN run with the policy ``behaviour_policy="critic"`` collects
+    with; a model without an actor is refused, naming the flag."""
+    args = ["train", "--env", "surviving_v0", "--preset", "sac_hgrn", "--seed", "3", "--folder"]
+    args += [str(tmp_path), *TOY, "--timesteps", "600", "--env-param", "n_agents=5", "--param"]
+    args += ["batch_size=4", "policy_kwargs.hidden_dim=16"]
+    assert main(args) == 0
+    run = tmp_path / "surviving_v0" / "sac_hgrn" / "seed_3"
+    model, env, _ = load_run(run, device="cpu")
+    model.policy.act = model.policy.critic_act
+    by_critic = evaluate_model(model, env, 4, True)
+    assert evaluate_run(run, n_episodes=4, deterministic=True, critic=True) == by_critic
+    assert evaluate_run(run, n_episodes=4, deterministic=True) != by_critic
+    with pytest.raises(ConfigError, match="--critic needs an actor-critic model"):
+        evaluate_run(surviving_run, n_episodes=1, critic=True)
+
+
 def test_evaluation_names_the_action_rule_it_used(surviving_run, tmp_path, capsys):
     """Greedy for DQN-style presets and deterministic flags, sampled for stochastic policies: in what
     ``evaluate`` prints and in ``eval.json``."""

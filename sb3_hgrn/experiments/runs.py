@@ -454,11 +454,13 @@ def evaluate_run(
     trust_config: bool = False,
     online: bool = False,
     trust_pickle: bool = False,
+    critic: bool = False,
     **env_kwargs: Any,
 ) -> dict[str, Any]:
     """Evaluate a saved run (see :func:`load_run`); ``epsilon`` mixes in random valid actions;
     ``online`` acts with the online network (Q-network or actor) of a model that deploys a Polyak
-    average (``policy_kwargs.average_tau``); ``trust_config``, ``trust_pickle``: see :func:`load_run`."""
+    average (``policy_kwargs.average_tau``); ``critic`` acts with a SAC-HGRN model's first critic's
+    Boltzmann policy instead of its actor; ``trust_config``, ``trust_pickle``: see :func:`load_run`."""
     model, vec_env, _ = load_run(
         path,
         env=env,
@@ -477,6 +479,14 @@ def evaluate_run(
                 "(trained with policy_kwargs.average_tau); this one acts with its online network already."
             )
         model.policy.drop_average()
+    if critic:
+        if not hasattr(model.policy, "acts_with_critic"):
+            vec_env.close()
+            raise ConfigError(
+                f"{path}: --critic needs an actor-critic model (SACHGRN); this {type(model).__name__} "
+                "acts with its Q-network already."
+            )
+        model.policy.acts_with_critic = True
     policy = EpsilonRandomPolicy(model, epsilon, seed=seed) if epsilon > 0 else model
     try:
         return evaluate_model(policy, vec_env, n_episodes, deterministic)

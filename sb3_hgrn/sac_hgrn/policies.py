@@ -110,6 +110,18 @@ class SACHGRNPolicy(GraphPolicy):
             return outputs / self.temperature.per_agent(groups)
         return outputs
 
+    acts_with_critic: bool = False
+    """``act`` (so ``predict`` and evaluation) draws from the first critic's Boltzmann policy, the
+    policy ``behaviour_policy="critic"`` collects with, instead of the deployed actor; a setting of
+    the loaded object, not saved with the model (``sb3-hgrn evaluate --critic``)."""
+
+    def act(
+        self, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False
+    ) -> tuple[th.Tensor, th.Tensor]:
+        if self.acts_with_critic:
+            return self.critic_act(obs, hidden, deterministic)
+        return super().act(obs, hidden, deterministic)
+
     def act_with(
         self, network: nn.Module, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False
     ) -> tuple[th.Tensor, th.Tensor]:
