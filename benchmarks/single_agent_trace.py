@@ -4,10 +4,11 @@ Run: python benchmarks/single_agent_trace.py --env Acrobot-v1 --preset discrete_
      [--seed 0] [--every 5000] [--param gradient_steps=-1 actor_loss=standard] [--eval-episodes 5]
 
 Trains the preset with the settings of ``sb3_hgrn/hyperparams/<preset>.yml`` for the env (``--param``
-overrides them, values read as YAML), one torch thread, and prints every ``--every`` env steps the
-mean return of the last 10 training episodes and the last logged ``train/`` figures (the actor's
-entropy, the Boltzmann entropy that alpha steers, alpha, the losses). At the end it prints the greedy
-and the sampled return over ``--eval-episodes`` episodes and the wall time.
+overrides them as the CLI's does: dotted keys reach into ``policy_kwargs``), one torch thread, and
+prints every ``--every`` env steps the mean return of the last 10 training episodes and the last
+logged ``train/`` figures (the actor's entropy, the Boltzmann entropy that alpha steers, alpha, the
+losses). At the end it prints the greedy and the sampled return over ``--eval-episodes`` episodes
+and the wall time.
 """
 
 from __future__ import annotations
@@ -17,10 +18,10 @@ import time
 
 import numpy as np
 import torch as th
-import yaml
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.evaluation import evaluate_policy
 
+from sb3_hgrn.experiments.config import parse_assignments
 from sb3_hgrn.experiments.single_agent import SINGLE_AGENT_PRESETS, env_settings, make_model
 
 SHOWN = ("actor_entropy", "entropy", "alpha", "critic_loss", "actor_loss", "loss")
@@ -59,8 +60,7 @@ def main() -> None:
     parser.add_argument("--param", nargs="*", default=[], metavar="KEY=VALUE")
     args = parser.parse_args()
     th.set_num_threads(1)
-    params = {key: yaml.safe_load(value) for key, _, value in (item.partition("=") for item in args.param)}
-    settings = env_settings(args.preset, args.env, params)
+    settings = env_settings(args.preset, args.env, parse_assignments(args.param))
     start = time.perf_counter()
     model = make_model(args.preset, args.env, settings, args.seed)
     model.learn(args.steps, callback=Trace(args.every))

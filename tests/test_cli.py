@@ -396,6 +396,8 @@ def test_evaluate_critic_acts_with_the_critics_boltzmann_policy(surviving_run, t
     assert evaluate_run(run, n_episodes=4, deterministic=True) != by_critic
     with pytest.raises(ConfigError, match="--critic needs an actor-critic model"):
         evaluate_run(surviving_run, n_episodes=1, critic=True)
+    with pytest.raises(ConfigError, match="--critic and --online"):
+        evaluate_run(run, n_episodes=1, critic=True, online=True)
 
 
 def test_evaluation_names_the_action_rule_it_used(surviving_run, tmp_path, capsys):

@@ -480,6 +480,11 @@ def evaluate_run(
             )
         model.policy.drop_average()
     if critic:
+        if online:
+            vec_env.close()
+            raise ConfigError(
+                f"{path}: --critic and --online name two different networks to act with; give one."
+            )
         if not hasattr(model.policy, "acts_with_critic"):
             vec_env.close()
             raise ConfigError(
