@@ -193,14 +193,14 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument(
         "--online",
         action="store_true",
-        help="act with the online network (Q-network or actor) of a model trained with "
+        help="act with the online network (Q-network, actor or acting critic) of a model trained with "
         "policy_kwargs.average_tau",
     )
     evaluate.add_argument(
         "--critic",
         action="store_true",
-        help="SAC-HGRN: act with the first critic's Boltzmann policy softmax(Q / alpha) instead of the "
-        "actor (the policy behaviour_policy=critic collects with)",
+        help="SAC-HGRN: act with the online first critic's Boltzmann policy softmax(Q / alpha) instead of "
+        "the deployed actor (a model trained with behaviour_policy=critic deploys its critic already)",
     )
     evaluate.add_argument("--n-envs", type=_positive_int, help="env copies (default: the run's eval_n_envs)")
     evaluate.add_argument("--seed", type=int, help="env seed (default: the run's seed + 1000)")

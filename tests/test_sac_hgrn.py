@@ -268,21 +268,27 @@ def _prefer(network, action: int) -> None:
         head.bias[action] = 10.0
 
 
-@pytest.mark.parametrize("behaviour_policy, collected", [("actor", 0), ("critic", 1)])
-def test_behaviour_policy_chooses_the_network_that_collects(behaviour_policy, collected):
-    """The agents collect with the actor, or with the critic's Boltzmann policy; ``predict`` always
-    acts with the actor (its deployed average)."""
+@pytest.mark.parametrize("behaviour_policy, preferred", [("actor", 0), ("critic", 1)])
+def test_behaviour_policy_collects_and_is_deployed(behaviour_policy, preferred, tmp_path):
+    """The agents collect with the actor, or with the critic's Boltzmann policy, and ``predict``
+    deploys that same policy (its average), before and after a save and load."""
     env = bit_vec_env(n_envs=2)
     model = quick_model(env, behaviour_policy=behaviour_policy, learning_starts=0, gradient_steps=0)
     model.policy.temperature.reset(0.5)
     _prefer(model.policy.actor, 0)
     _prefer(model.policy.critics[0], 1)
-    model.policy.update_average()  # the deployed average's first update copies the actor
+    model.policy.update_average()  # the deployed average's first update copies the online network
     model.learn(8 * 25)
     stored = model.replay_buffer.actions[: model.replay_buffer.pos]
-    assert (stored == collected).mean() > 0.99  # the other action has probability e^-20
+    assert (stored == preferred).mean() > 0.99  # the other action has probability e^-20
     actions, _ = model.predict(env.reset())
-    assert (actions == 0).all()
+    assert (actions == preferred).all()
+    model.save(tmp_path / "model")
+    loaded = SACHGRN.load(tmp_path / "model", env=env)
+    assert loaded.policy.behaviour_policy == behaviour_policy
+    assert (loaded.predict(env.reset())[0] == preferred).all()
+    with pytest.raises(ValueError, match="policy_kwargs.behaviour_policy='actor' disagrees"):
+        quick_model(env, behaviour_policy="critic", policy_kwargs=dict(behaviour_policy="actor"))
 
 
 def test_critic_act_advances_every_memory_as_act_does():

@@ -458,9 +458,10 @@ def evaluate_run(
     **env_kwargs: Any,
 ) -> dict[str, Any]:
     """Evaluate a saved run (see :func:`load_run`); ``epsilon`` mixes in random valid actions;
-    ``online`` acts with the online network (Q-network or actor) of a model that deploys a Polyak
-    average (``policy_kwargs.average_tau``); ``critic`` acts with a SAC-HGRN model's first critic's
-    Boltzmann policy instead of its actor; ``trust_config``, ``trust_pickle``: see :func:`load_run`."""
+    ``online`` acts with the online network (Q-network, actor or acting critic) of a model that
+    deploys a Polyak average (``policy_kwargs.average_tau``); ``critic`` acts with a SAC-HGRN model's
+    online first critic's Boltzmann policy instead of what it deploys; ``trust_config``,
+    ``trust_pickle``: see :func:`load_run`."""
     model, vec_env, _ = load_run(
         path,
         env=env,

@@ -13,6 +13,8 @@ from sb3_hgrn.common.hgrn import HGRN, GraphBatch
 from sb3_hgrn.common.policies import GraphObs, GraphPolicy
 from sb3_hgrn.common.soft_math import sample_actions
 
+BEHAVIOUR_POLICIES = ("actor", "critic")
+
 
 class SACHGRNPolicy(GraphPolicy):
     """Discrete soft actor-critic on graphs: actor and ``n_critics`` critics with separate parameters.
@@ -28,18 +30,23 @@ class SACHGRNPolicy(GraphPolicy):
     ``1 / alpha`` times larger ones, and a change of alpha changes the actor's entropy at once
     (docs/results.md has what it did).
 
-    With ``average_tau`` the deployed actor is the Polyak average ``actor_average`` (see
-    :class:`~sb3_hgrn.common.policies.GraphPolicy`); the online actor collects and learns.
+    The policy that collects, and that :meth:`act` (``predict``, every evaluation) deploys, is the
+    actor's, or with ``behaviour_policy="critic"`` the first critic's Boltzmann policy
+    ``softmax(Q / alpha)``: a model deploys the policy its training returns describe. With
+    ``average_tau`` it deploys the Polyak average of that network (``actor_average`` or
+    ``critic_average``, see :class:`~sb3_hgrn.common.policies.GraphPolicy`); the online networks
+    collect and learn.
 
     :param n_critics: number of critics (2 = clipped double Q).
     :param tempered_actor: divide the actor's outputs by alpha (only for stochastic policies: a
         greedy actor's argmax does not depend on alpha).
+    :param behaviour_policy: ``"actor"`` or ``"critic"``: the network whose policy collects and is
+        deployed (set by :class:`~sb3_hgrn.sac_hgrn.SACHGRN` from its argument of that name).
     :param actor_kwargs: network options of the actor only (e.g. ``dict(communication="none")``).
     :param critic_kwargs: network options of the critics only.
     Other parameters: see :class:`~sb3_hgrn.common.policies.GraphPolicy`.
     """
 
-    acting_network_name = "actor"
     network_arguments = ("actor_kwargs", "critic_kwargs")
 
     def __init__(
@@ -51,18 +58,24 @@ class SACHGRNPolicy(GraphPolicy):
         actor_kwargs: dict[str, Any] | None = None,
         critic_kwargs: dict[str, Any] | None = None,
         tempered_actor: bool = False,
+        behaviour_policy: str = "actor",
         **kwargs: Any,
     ):
         super().__init__(observation_space, action_space, lr_schedule, **kwargs)
         if n_critics < 1:
             raise ValueError(f"n_critics must be >= 1, got {n_critics}.")
+        if behaviour_policy not in BEHAVIOUR_POLICIES:
+            raise ValueError(
+                f"behaviour_policy must be one of {BEHAVIOUR_POLICIES}, got {behaviour_policy!r}."
+            )
         self.n_critics = n_critics
         self.tempered_actor = tempered_actor
+        self.behaviour_policy = behaviour_policy
         self.actor_kwargs = dict(actor_kwargs or {})
         self.critic_kwargs = dict(critic_kwargs or {})
         self.actor = self.make_network(**self.actor_kwargs)
-        self.keep_average()
         self.critics = nn.ModuleList(self.make_network(**self.critic_kwargs) for _ in range(n_critics))
+        self.keep_average()
         self.critic_targets = nn.ModuleList(self.make_network(**self.critic_kwargs) for _ in range(n_critics))
         self.critic_targets.load_state_dict(self.critics.state_dict())
         self.critic_targets.requires_grad_(False)
@@ -75,6 +88,16 @@ class SACHGRNPolicy(GraphPolicy):
         )
 
     @property
+    def acting_network_name(self) -> str:  # type: ignore[override]
+        return self.behaviour_policy
+
+    @property
+    def online_network(self) -> HGRN:
+        """The network whose policy collects: the actor, or with ``behaviour_policy="critic"`` the
+        first critic."""
+        return self.critics[0] if self.behaviour_policy == "critic" else self.actor
+
+    @property
     def recurrent_networks(self) -> list[HGRN]:
         return [self.actor, *self.critics]
 
@@ -85,6 +108,7 @@ class SACHGRNPolicy(GraphPolicy):
             actor_kwargs=self.actor_kwargs,
             critic_kwargs=self.critic_kwargs,
             tempered_actor=self.tempered_actor,
+            behaviour_policy=self.behaviour_policy,
         )
         return data
 
@@ -111,9 +135,9 @@ class SACHGRNPolicy(GraphPolicy):
         return outputs
 
     acts_with_critic: bool = False
-    """``act`` (so ``predict`` and evaluation) draws from the first critic's Boltzmann policy, the
-    policy ``behaviour_policy="critic"`` collects with, instead of the deployed actor; a setting of
-    the loaded object, not saved with the model (``sb3-hgrn evaluate --critic``)."""
+    """``act`` (so ``predict`` and evaluation) draws from the online first critic's Boltzmann policy
+    whatever the model deploys; a setting of the loaded object, not saved with the model
+    (``sb3-hgrn evaluate --critic``)."""
 
     def act(
         self, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False
@@ -125,25 +149,31 @@ class SACHGRNPolicy(GraphPolicy):
     def act_with(
         self, network: nn.Module, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False
     ) -> tuple[th.Tensor, th.Tensor]:
-        """Actions drawn from the policy of the actor ``network`` (the online actor or its average)."""
+        """Actions drawn from the policy of ``network``: the online actor or its average, or with
+        ``behaviour_policy="critic"`` the first critic or its average (its Boltzmann policy)."""
+        if self.behaviour_policy == "critic":
+            return self._act(obs, hidden, deterministic, first_critic=network)
         return self._act(obs, hidden, deterministic, actor=network)
 
     def critic_act(
         self, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False
     ) -> tuple[th.Tensor, th.Tensor]:
-        """As :meth:`act`, with the actions drawn from the first critic's Boltzmann policy
-        ``softmax(Q / alpha)`` (greedy: its argmax) instead of the actor's; every network's memory
-        advances as in :meth:`act`."""
-        return self._act(obs, hidden, deterministic, actor=self.actor, with_critic=True)
+        """As :meth:`act`, with the actions drawn from the online first critic's Boltzmann policy
+        ``softmax(Q / alpha)`` (greedy: its argmax); every network's memory advances as in
+        :meth:`act`."""
+        return self._act(obs, hidden, deterministic, first_critic=self.critics[0])
 
     def _act(
         self,
         obs: GraphObs,
         hidden: th.Tensor,
         deterministic: bool,
-        actor: nn.Module,
-        with_critic: bool = False,
+        actor: nn.Module | None = None,
+        first_critic: nn.Module | None = None,
     ) -> tuple[th.Tensor, th.Tensor]:
+        """Actions from the policy of ``actor`` (the online one if ``None``), or with
+        ``first_critic`` from that network's Boltzmann policy, in the first critic's place; every
+        network's memory advances."""
         observations, neighbors, groups = self.to_graphs(obs)
         n_graphs, n_agents = observations.shape[:2]
         states = self.split_state(hidden.reshape(n_graphs, n_agents, -1))
@@ -151,9 +181,10 @@ class SACHGRNPolicy(GraphPolicy):
         logits, actor_state = self.actor_logits(observations, graph, states[0], groups, actor)
         new_states = [actor_state]
         for index, (critic, state) in enumerate(zip(self.critics, states[1:], strict=True)):
-            if critic.state_dim or (with_critic and index == 0):
-                q_values, new_state = critic(observations, graph, state)
-                if with_critic and index == 0:
+            acting = index == 0 and first_critic is not None
+            if critic.state_dim or acting:
+                q_values, new_state = (first_critic if acting else critic)(observations, graph, state)
+                if acting:
                     logits = q_values / self.temperature.per_agent(groups)
                 state = new_state if critic.state_dim else state
             new_states.append(state)

@@ -17,9 +17,7 @@ from sb3_hgrn.common.soft_math import (
     ALPHA_ENTROPIES,
     critic_minimum,
 )
-from sb3_hgrn.sac_hgrn.policies import SACHGRNPolicy
-
-BEHAVIOUR_POLICIES = ("actor", "critic")
+from sb3_hgrn.sac_hgrn.policies import BEHAVIOUR_POLICIES, SACHGRNPolicy
 
 
 class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
@@ -65,8 +63,10 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
     :param behaviour_policy: the policy the agents act with while collecting: ``"actor"`` (as in
         the paper) or ``"critic"``, the first critic's Boltzmann policy ``softmax(Q / alpha)``, the
         policy every actor loss moves the actor toward. The actor and the critics learn the same way
-        either way (off-policy), and ``predict`` always acts with the actor. Use it with
-        ``tempered_actor``, which keeps alpha from collapsing (docs/results.md has why and what it did).
+        either way (off-policy). ``predict`` and every evaluation act with the same policy as
+        collecting (with ``average_tau``, that of the network's average), so that the saved model is
+        the policy its training returns describe. Use it with ``tempered_actor``, which keeps alpha
+        from collapsing (docs/results.md has why and what it did).
     :param actor_steps: actor gradient steps on each batch, after its one critic step: more let the
         actor keep up with a critic that moves fast (docs/results.md).
     :param policy_kwargs: network options for both networks, plus ``n_critics``, ``actor_kwargs``,
@@ -165,6 +165,12 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         self.actor_loss = actor_loss
         self.alpha_entropy = alpha_entropy
         self.behaviour_policy = behaviour_policy
+        if self.policy_kwargs.get("behaviour_policy", behaviour_policy) != behaviour_policy:
+            raise ValueError(
+                f"policy_kwargs.behaviour_policy={self.policy_kwargs['behaviour_policy']!r} disagrees with "
+                f"behaviour_policy={behaviour_policy!r}; give SACHGRN's behaviour_policy argument only."
+            )
+        self.policy_kwargs = {**self.policy_kwargs, "behaviour_policy": behaviour_policy}
         self.actor_steps = int(actor_steps)
         if _init_setup_model:
             self._setup_model()
