@@ -113,11 +113,12 @@ class _Pattern:
     :param targets: ``(rows, E)`` entry targets below ``n_targets`` (see :func:`neighbor_entries`).
     :param heads: attention heads.
     :param n_targets: number of targets.
+    :param mask: ``(rows, E)`` True at the entries taking part (see :func:`neighbor_entries`).
     """
 
-    def __init__(self, targets: Tensor, heads: int, n_targets: int) -> None:
+    def __init__(self, targets: Tensor, heads: int, n_targets: int, mask: Tensor) -> None:
         rows, n_entries = targets.shape
-        self.targets, self.heads, self.n_targets = targets, heads, n_targets
+        self.targets, self.heads, self.n_targets, self.mask = targets, heads, n_targets, mask
         self.shape = (rows * heads, n_targets * heads)
         fits = max(rows * heads * n_entries, *self.shape) < torch.iinfo(torch.int32).max
         self.index_dtype = torch.int32 if fits else torch.long
@@ -134,13 +135,22 @@ class _Pattern:
         return torch.zeros(self.col.numel(), device=self.targets.device)
 
     @functools.cached_property
+    def masked_values(self) -> Tensor:
+        """``(rows * heads * E,)``: 0 at the entries taking part, ``-inf`` at the others; sampled
+        products added to them are logits masked for the softmax."""
+        rows, n_entries = self.mask.shape
+        bias = torch.where(self.mask, 0.0, -math.inf)
+        return bias.unsqueeze(1).expand(rows, self.heads, n_entries).reshape(-1)
+
+    @functools.cached_property
     def _transposed(self) -> tuple[Tensor, Tensor, Tensor]:
         """``(crow_t, col_t, transpose)``, built once."""
         heads, n_entries, dtype = self.heads, self.targets.shape[1], self.index_dtype
-        target = self.targets.reshape(-1)  # entry e = r * E + k points at target[e]
-        sorted_target, order = torch.sort(target, stable=True)  # by target, then by source row
-        every_target = torch.arange(self.n_targets, device=target.device, dtype=target.dtype)
-        ends = torch.searchsorted(sorted_target, every_target, right=True)  # entries at targets <= t
+        target = self.targets.reshape(-1).to(dtype)  # entry e = r * E + k points at target[e]
+        order = torch.sort(target, stable=True).indices  # by target, then by source row
+        counts = torch.zeros(self.n_targets, dtype=torch.long, device=target.device)
+        counts.scatter_add_(0, target.long(), torch.ones_like(target, dtype=torch.long))
+        ends = counts.cumsum(0)  # entries at targets <= t
         source_row, place = order // n_entries, order % n_entries
         head = self._head.unsqueeze(1)
         # Block h lists the entries in `order` again, with columns and values of head h.
@@ -193,18 +203,20 @@ def _matmul(pattern: _Pattern, values: Tensor, dense: Tensor, transposed: bool =
     rows, columns = pattern.shape
     if not transposed:
         return _sparse(pattern.crow, pattern.col, values, pattern.shape) @ dense
-    matrix = _sparse(pattern.crow_t, pattern.col_t, values[pattern.transpose], (columns, rows))
+    matrix = _sparse(
+        pattern.crow_t, pattern.col_t, values.index_select(0, pattern.transpose), (columns, rows)
+    )
     by_head = (matrix @ dense).view(pattern.heads, pattern.n_targets, -1)  # rows h * n_targets + t
     return by_head[:, : rows // pattern.heads].transpose(0, 1).reshape(rows, -1)
 
 
-def _sampled_dot(pattern: _Pattern, left: Tensor, right: Tensor) -> Tensor:
-    """Dot products ``left[row] . right[col]`` ``(rows * heads * E,)`` at the entries of ``pattern``;
-    ``left`` ``(rows * heads, head_dim)``, ``right`` ``((rows + E) * heads, head_dim)`` (see
-    :func:`_padded`)."""
-    zeros = pattern.zero_values.to(left.dtype)
+def _sampled_dot(pattern: _Pattern, left: Tensor, right: Tensor, masked: bool = False) -> Tensor:
+    """Dot products ``left[row] . right[col]`` ``(rows * heads * E,)`` at the entries of ``pattern``
+    (``-inf`` at the entries taking no part if ``masked``); ``left`` ``(rows * heads, head_dim)``,
+    ``right`` ``((rows + E) * heads, head_dim)`` (see :func:`_padded`)."""
+    start = (pattern.masked_values if masked else pattern.zero_values).to(left.dtype)
     return torch.sparse.sampled_addmm(
-        _sparse(pattern.crow, pattern.col, zeros, pattern.shape), left, right.t(), beta=0.0
+        _sparse(pattern.crow, pattern.col, start, pattern.shape), left, right.t(), beta=1.0 if masked else 0.0
     ).values()
 
 
@@ -232,9 +244,12 @@ class NeighborAttention(torch.autograd.Function):
         rows, heads, head_dim = query.shape
         scaled_query = (query * head_dim**-0.5).reshape(-1, head_dim)
         key, value = (_padded(pattern, tensor.reshape(-1, head_dim)) for tensor in (key, value))
-        logits = _sampled_dot(pattern, scaled_query, key).view(rows, heads, -1)
+        masked = len(segments) == 1 and segments[0] is pattern.mask  # the pattern's own mask: sampled in
+        logits = _sampled_dot(pattern, scaled_query, key, masked).view(rows, heads, -1)
         if len(segments) == 1:
-            weights = logits.masked_fill_(~segments[0].unsqueeze(1), -math.inf).softmax(dim=-1)
+            if not masked:
+                logits.masked_fill_(~segments[0].unsqueeze(1), -math.inf)
+            weights = logits.softmax(dim=-1)
             outputs = [_matmul(pattern, weights, value)]
         else:
             selections = [segment.unsqueeze(1).to(logits.dtype) for segment in segments]
@@ -336,7 +351,7 @@ class GraphBatch:
     def pattern(self, heads: int) -> _Pattern:
         """CSR pattern of the attention with ``heads`` heads (built once per head count)."""
         if heads not in self._patterns:
-            self._patterns[heads] = _Pattern(self.targets, heads, self.n_targets)
+            self._patterns[heads] = _Pattern(self.targets, heads, self.n_targets, self.mask)
         return self._patterns[heads]
 
     def segments(self, across_groups: bool) -> list[Tensor]:
