@@ -520,7 +520,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     )
     print(
         f"team return {results['mean']:.2f} +- {results['std']:.2f} over {results['n_episodes']} episodes "
-        f"({results['actions']} actions, epsilon {args.epsilon:g})"
+        f"({results['actions']} actions, epsilon {args.epsilon:g}; acting: {results['network']})"
     )
     if args.actions:
         used = [

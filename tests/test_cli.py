@@ -94,7 +94,8 @@ def test_evaluate_and_render(surviving_run, tmp_path, capsys):
     assert "team return" in capsys.readouterr().out
     checkpoint = surviving_run / "checkpoints" / "model_300_steps.zip"
     assert main(["evaluate", str(checkpoint), "--episodes", "2", "--deterministic", "--epsilon", "0.3"]) == 0
-    assert "over 2 episodes (greedy actions, epsilon 0.3)" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "over 2 episodes (greedy actions, epsilon 0.3; acting: Polyak average of the Q-network)" in printed
 
     gif = tmp_path / "episode.gif"
     assert (
@@ -392,7 +393,10 @@ def test_evaluate_critic_acts_with_the_critics_boltzmann_policy(surviving_run, t
     model, env, _ = load_run(run, device="cpu")
     model.policy.act = model.policy.critic_act
     by_critic = evaluate_model(model, env, 4, True)
-    assert evaluate_run(run, n_episodes=4, deterministic=True, critic=True) == by_critic
+    assert evaluate_run(run, n_episodes=4, deterministic=True, critic=True) == {
+        **by_critic,
+        "network": "online first critic (its Boltzmann policy)",
+    }
     assert evaluate_run(run, n_episodes=4, deterministic=True) != by_critic
     with pytest.raises(ConfigError, match="--critic needs an actor-critic model"):
         evaluate_run(surviving_run, n_episodes=1, critic=True)
@@ -419,6 +423,8 @@ def test_evaluation_names_the_action_rule_it_used(surviving_run, tmp_path, capsy
         (surviving_run, ["--deterministic"], "greedy"),
     ]:
         assert main(["evaluate", str(run), "--episodes", "1", "--threads", "1", *flags]) == 0
-        assert f"({rule} actions, epsilon 0)" in capsys.readouterr().out
+        printed = capsys.readouterr().out
+        assert f"({rule} actions, epsilon 0; acting: Polyak average of the Q-network)" in printed
     env = make_graph_vec_env("surviving_v0", n_envs=1, seed=0, env_kwargs={"n_agents": 5, "max_cycles": 20})
-    assert evaluate_model(RandomGraphPolicy(env, seed=0), env, 1, True)["actions"] == "uniform random"
+    random_results = evaluate_model(RandomGraphPolicy(env, seed=0), env, 1, True)
+    assert random_results["actions"] == "uniform random" and random_results["network"] is None

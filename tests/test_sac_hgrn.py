@@ -286,6 +286,8 @@ def test_behaviour_policy_collects_and_is_deployed(behaviour_policy, preferred, 
     model.save(tmp_path / "model")
     loaded = SACHGRN.load(tmp_path / "model", env=env)
     assert loaded.policy.behaviour_policy == behaviour_policy
+    label = "first critic (its Boltzmann policy)" if behaviour_policy == "critic" else "actor"
+    assert loaded.policy.deployed_label == f"Polyak average of the {label}"
     assert (loaded.predict(env.reset())[0] == preferred).all()
     with pytest.raises(ValueError, match="policy_kwargs.behaviour_policy='actor' disagrees"):
         quick_model(env, behaviour_policy="critic", policy_kwargs=dict(behaviour_policy="actor"))

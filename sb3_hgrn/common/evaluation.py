@@ -193,8 +193,10 @@ class GraphEvalCallback(EventCallback):
                 ep_lengths=self.evaluations_length,
             )
         if self.verbose >= 1:
+            acting = getattr(getattr(self.model, "policy", None), "deployed_label", None)
             print(
                 f"Eval num_timesteps={self.num_timesteps}, team return={mean_return:.2f} +/- {std_return:.2f}"
+                + ("" if acting is None else f" (acting: {acting})")
             )
         self.logger.record("eval/mean_team_reward", mean_return)
         self.logger.record("eval/std_team_reward", std_return)

@@ -138,6 +138,9 @@ class GraphPolicy(BasePolicy):
     acting_network_name: ClassVar[str]
     """Attribute name of the network that chooses the actions (its average is ``<name>_average``)."""
 
+    acting_network_label: ClassVar[str] = "network"
+    """What the network that chooses the actions is, in words (reports of what is deployed)."""
+
     network_arguments: tuple[str, ...] = ()
     """Arguments of a subclass that hold :data:`NETWORK_OPTIONS` overriding the policy's for some of its
     networks (checked by :func:`check_policy_kwargs`)."""
@@ -261,6 +264,13 @@ class GraphPolicy(BasePolicy):
         kept, else the online network."""
         average = self.average_network
         return self.online_network if average is None else average
+
+    @property
+    def deployed_label(self) -> str:
+        """What :meth:`act` acts with, in words, e.g. ``"Polyak average of the Q-network"``."""
+        if self.average_network is None:
+            return f"online {self.acting_network_label}"
+        return f"Polyak average of the {self.acting_network_label}"
 
     def keep_average(self) -> None:
         """Start the Polyak average of :attr:`online_network` when ``average_tau`` is set (subclasses

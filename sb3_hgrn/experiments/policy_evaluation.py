@@ -103,11 +103,21 @@ def action_rule(model: Any, deterministic: bool) -> str:
     return "sampled" if stochastic else "predict(deterministic=False)"
 
 
+def deployed_label(model: Any) -> str | None:
+    """The network a graph model acts with, in words (see
+    :attr:`~sb3_hgrn.common.policies.GraphPolicy.deployed_label`), under any :class:`PolicyWrapper`;
+    ``None`` for a policy without networks (such as :class:`RandomGraphPolicy`)."""
+    while isinstance(model, PolicyWrapper):
+        model = model.model
+    return getattr(getattr(model, "policy", None), "deployed_label", None)
+
+
 def evaluate_model(model: Any, env: GraphVecEnv, n_episodes: int, deterministic: bool) -> dict[str, Any]:
     """Team-return figures of ``n_episodes`` episodes: mean, std, per-episode returns and lengths, the
     fraction of agent-steps that took each action (over every step the evaluation ran), the action
-    rule used (``actions``, see :func:`action_rule`; ``deterministic`` says whether it is greedy) and
-    the probability ``epsilon`` of a random action mixed in."""
+    rule used (``actions``, see :func:`action_rule`; ``deterministic`` says whether it is greedy), the
+    network that acted (``network``, see :func:`deployed_label`) and the probability ``epsilon`` of a
+    random action mixed in."""
     counter = ActionCounter(model, int(env.action_space.n))
     returns, lengths = evaluate_graph_policy(
         counter, env, n_eval_episodes=n_episodes, deterministic=deterministic, return_episode_rewards=True
@@ -121,6 +131,7 @@ def evaluate_model(model: Any, env: GraphVecEnv, n_episodes: int, deterministic:
         "n_episodes": len(returns),
         "actions": rule,
         "deterministic": rule == "greedy",
+        "network": deployed_label(model),
         "epsilon": float(getattr(model, "epsilon", 0.0)),
         "action_frequencies": counter.frequencies(),
     }

@@ -92,6 +92,16 @@ class SACHGRNPolicy(GraphPolicy):
         return self.behaviour_policy
 
     @property
+    def acting_network_label(self) -> str:  # type: ignore[override]
+        return "first critic (its Boltzmann policy)" if self.behaviour_policy == "critic" else "actor"
+
+    @property
+    def deployed_label(self) -> str:
+        if self.acts_with_critic:
+            return "online first critic (its Boltzmann policy)"
+        return super().deployed_label
+
+    @property
     def online_network(self) -> HGRN:
         """The network whose policy collects: the actor, or with ``behaviour_policy="critic"`` the
         first critic."""

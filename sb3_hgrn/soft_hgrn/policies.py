@@ -23,6 +23,7 @@ class SoftHGRNPolicy(GraphPolicy):
     """
 
     acting_network_name = "q_net"
+    acting_network_label = "Q-network"
 
     def __init__(
         self,
