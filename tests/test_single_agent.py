@@ -201,11 +201,45 @@ def test_rejects_action_spaces_other_than_discrete(name, env_class, kind):
         (dict(alpha_entropy="critic"), "alpha_entropy must be one of"),
         (dict(actor_steps=0), "actor_steps must be a positive integer, got 0"),
         (dict(policy_kwargs=dict(n_critics=0)), "n_critics must be a positive integer, got 0"),
+        (dict(behaviour_policy="target"), "behaviour_policy must be one of"),
+        (
+            dict(behaviour_policy="critic", policy_kwargs=dict(behaviour_policy="actor")),
+            "policy_kwargs.behaviour_policy='actor' disagrees",
+        ),
     ],
 )
 def test_discrete_sac_names_bad_options(options, message):
     with pytest.raises(ValueError, match=message):
         DiscreteSAC("MlpPolicy", "CartPole-v1", **options)
+
+
+def _prefer(network: th.nn.Module, action: int) -> None:
+    """Make ``network`` output 10 for ``action`` and 0 for the others on every observation."""
+    head = [module for module in network.modules() if isinstance(module, th.nn.Linear)][-1]
+    with th.no_grad():
+        head.weight.zero_()
+        head.bias.zero_()
+        head.bias[action] = 10.0
+
+
+@pytest.mark.parametrize("behaviour_policy, preferred", [("actor", 0), ("critic", 1)])
+def test_discrete_sac_collects_and_deploys_its_behaviour_policy(behaviour_policy, preferred, tmp_path):
+    """The actor, or the first critic's Boltzmann policy, collects and is what ``predict`` acts
+    with, before and after a save and load."""
+    options = {**SMALL, "learning_starts": 0, "gradient_steps": 0, "behaviour_policy": behaviour_policy}
+    model = DiscreteSAC("MlpPolicy", "CartPole-v1", seed=0, **options)
+    model.policy.temperature.reset(0.5)
+    _prefer(model.policy.actor, 0)
+    _prefer(model.policy.critics[0], 1)
+    model.learn(200)
+    stored = model.replay_buffer.actions[: model.replay_buffer.pos]
+    assert (stored == preferred).mean() > 0.99  # the other action has probability e^-20
+    observations = np.random.default_rng(0).normal(size=(32, 4)).astype(np.float32)
+    assert (model.predict(observations)[0] == preferred).all()
+    model.save(tmp_path / "model.zip")
+    loaded = DiscreteSAC.load(tmp_path / "model.zip")
+    assert loaded.behaviour_policy == loaded.policy.behaviour_policy == behaviour_policy
+    assert (loaded.predict(observations)[0] == preferred).all()
 
 
 def test_cli_trains_a_single_agent_preset(tmp_path, capsys):

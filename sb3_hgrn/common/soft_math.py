@@ -19,6 +19,10 @@ ACTOR_LOSSES = ("boltzmann", "standard", "policy_gradient")
 ALPHA_ENTROPIES = ("actor", "boltzmann")
 """The entropies a discrete-SAC temperature can steer toward its target (see :func:`steered_entropy`)."""
 
+BEHAVIOUR_POLICIES = ("actor", "critic")
+"""The policies a discrete SAC can collect with and deploy: the actor's, or the first critic's
+Boltzmann policy ``softmax(Q / alpha)``."""
+
 
 def masked_mean(values: th.Tensor, mask: th.Tensor) -> th.Tensor:
     """Mean of ``values`` ``(...)`` over the entries where ``mask`` (same shape, 1 or 0) is 1: the

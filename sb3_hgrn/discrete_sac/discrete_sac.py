@@ -17,6 +17,7 @@ from sb3_hgrn.common.soft_actor_critic import SACFigures, SoftActorCritic
 from sb3_hgrn.common.soft_math import (
     ACTOR_LOSSES,
     ALPHA_ENTROPIES,
+    BEHAVIOUR_POLICIES,
     bootstrapped,
     critic_minimum,
 )
@@ -42,6 +43,10 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
     :param actor_loss: ``"boltzmann"``, ``"standard"`` or ``"policy_gradient"``.
     :param alpha_entropy: ``"boltzmann"`` (the entropy of ``softmax(Q / alpha)``, the policy the actor
         is trained toward) or ``"actor"`` (the actor's own).
+    :param behaviour_policy: the policy that collects and that ``predict`` acts with: ``"actor"``, or
+        ``"critic"``, the first critic's Boltzmann policy ``softmax(Q / alpha)`` (the policy every
+        actor loss moves the actor toward; the actor still gives the targets' soft values), as
+        :class:`~sb3_hgrn.SACHGRN`'s option of that name.
     :param actor_steps: actor gradient steps per critic step.
     :param target_entropy_ratio: the target entropy is ``target_entropy_ratio * log(n_actions)``.
     :param alpha_init: initial temperature, or ``"auto"``: 0.1 times the standard deviation of the
@@ -82,6 +87,7 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
         target_update_interval: int = 1,
         actor_loss: str = "boltzmann",
         alpha_entropy: str = "boltzmann",
+        behaviour_policy: str = "actor",
         actor_steps: int = 1,
         target_entropy_ratio: float = 0.2,
         alpha_init: float | str = 0.1,
@@ -104,6 +110,15 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
             raise ValueError(f"alpha_entropy must be one of {ALPHA_ENTROPIES}, got {alpha_entropy!r}.")
         if not isinstance(actor_steps, int) or actor_steps < 1:
             raise ValueError(f"actor_steps must be a positive integer, got {actor_steps!r}.")
+        if behaviour_policy not in BEHAVIOUR_POLICIES:
+            raise ValueError(
+                f"behaviour_policy must be one of {BEHAVIOUR_POLICIES}, got {behaviour_policy!r}."
+            )
+        if (policy_kwargs or {}).get("behaviour_policy", behaviour_policy) != behaviour_policy:
+            raise ValueError(
+                f"policy_kwargs.behaviour_policy={policy_kwargs['behaviour_policy']!r} disagrees with "
+                f"behaviour_policy={behaviour_policy!r}; give DiscreteSAC's behaviour_policy argument only."
+            )
         super().__init__(
             policy,
             check_discrete_env(env, "DiscreteSAC", verbose),
@@ -119,7 +134,7 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
             replay_buffer_kwargs=replay_buffer_kwargs,
             optimize_memory_usage=optimize_memory_usage,
             n_steps=n_steps,
-            policy_kwargs=policy_kwargs,
+            policy_kwargs={**(policy_kwargs or {}), "behaviour_policy": behaviour_policy},
             stats_window_size=stats_window_size,
             tensorboard_log=tensorboard_log,
             verbose=verbose,
@@ -132,6 +147,7 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
         self.target_update_interval = target_update_interval
         self.actor_loss = actor_loss
         self.alpha_entropy = alpha_entropy
+        self.behaviour_policy = behaviour_policy
         self.actor_steps = actor_steps
         self._set_temperature_options(
             target_entropy_ratio,

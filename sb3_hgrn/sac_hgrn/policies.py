@@ -11,9 +11,7 @@ from torch import nn
 
 from sb3_hgrn.common.hgrn import HGRN, GraphBatch
 from sb3_hgrn.common.policies import GraphObs, GraphPolicy
-from sb3_hgrn.common.soft_math import sample_actions
-
-BEHAVIOUR_POLICIES = ("actor", "critic")
+from sb3_hgrn.common.soft_math import BEHAVIOUR_POLICIES, sample_actions
 
 
 class SACHGRNPolicy(GraphPolicy):

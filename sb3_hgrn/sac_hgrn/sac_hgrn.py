@@ -15,9 +15,10 @@ from sb3_hgrn.common.soft_actor_critic import SACFigures, SoftActorCritic
 from sb3_hgrn.common.soft_math import (
     ACTOR_LOSSES,
     ALPHA_ENTROPIES,
+    BEHAVIOUR_POLICIES,
     critic_minimum,
 )
-from sb3_hgrn.sac_hgrn.policies import BEHAVIOUR_POLICIES, SACHGRNPolicy
+from sb3_hgrn.sac_hgrn.policies import SACHGRNPolicy
 
 
 class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
