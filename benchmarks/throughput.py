@@ -9,6 +9,10 @@ Prints, for Surviving with ``--agents`` agents:
 - per network size: gradient updates/s of ``SoftHGRN.train`` and the bare network time of the same
   batch (target forward + forward + backward + optimiser step); their ratio is the learner overhead;
 - bytes per replay row and the resident memory of a filled ``--buffer-rows`` buffer, and peak RSS.
+
+With 100 agents each figure the original code was measured at on a 2-core CPU (:data:`ORIGINAL`) is
+set beside it as a speed-up: the env alone, collecting with 1 copy, and the paper-size update of 128
+graphs.
 """
 
 from __future__ import annotations
@@ -25,6 +29,18 @@ from sb3_hgrn import SoftHGRN, make_graph_vec_env
 from sb3_hgrn.common.buffers import GraphReplayBuffer
 from sb3_hgrn.common.hgrn import PAPER_SIZE
 from sb3_hgrn.envs import surviving_v0
+
+ORIGINAL = {"env steps/s": 2200.0, "collect env steps/s": 99.0, "paper update s, 128 graphs": 4.2}
+"""The original code's figures, Surviving with 100 agents on a 2-core CPU: env steps/s with random
+actions, env steps/s while collecting (one forward per step) and seconds per paper-size update of
+128 graphs x 100 agents."""
+
+
+def speedup(ratio: float, n_agents: int, what: str) -> str:
+    """`` (N.Nx the original's FIGURE)`` for a measured ``ratio`` to the original's figure ``what``
+    (:data:`ORIGINAL`), or nothing when the run is not at the original's 100 agents."""
+    return "" if n_agents != 100 else f"  ({ratio:.2f}x the original's {ORIGINAL[what]:g} {what})"
+
 
 SIZES = {
     "default": {},
@@ -80,7 +96,8 @@ def env_rates(n_agents: int, steps: int) -> None:
         ("dict API", dict_api),
     ):
         rate = best_rate(run, steps)
-        print(f"env  {name:18s} {rate:9.0f} env steps/s  {rate * n_agents:11.0f} agent-steps/s")
+        versus = speedup(rate / ORIGINAL["env steps/s"], n_agents, "env steps/s")
+        print(f"env  {name:18s} {rate:9.0f} env steps/s  {rate * n_agents:11.0f} agent-steps/s{versus}")
 
 
 def collection_rates(n_agents: int, steps: int, device: str) -> None:
@@ -91,9 +108,11 @@ def collection_rates(n_agents: int, steps: int, device: str) -> None:
         total = steps * env.num_envs
         model.learn(env.num_envs * 10)  # warm-up
         rate = best_rate(lambda model=model, total=total: model.learn(total), steps, repeats=2)
+        env_steps = rate * n_copies
+        versus = speedup(env_steps / ORIGINAL["collect env steps/s"], n_agents, "collect env steps/s")
         print(
-            f"collect {n_copies} x {n_agents} agents: {rate:7.0f} vec-steps/s "
-            f"{rate * env.num_envs:9.0f} agent-steps/s (policy forward, env step, replay add)"
+            f"collect {n_copies} x {n_agents} agents: {rate:7.0f} vec-steps/s {env_steps:7.0f} env steps/s "
+            f"{rate * env.num_envs:9.0f} agent-steps/s (policy forward, env step, replay add){versus}"
         )
 
 
@@ -124,11 +143,15 @@ def update_rates(n_agents: int, size: str, batch_size: int, updates: int, device
 
     bare_rate = best_rate(bare_step, updates, repeats=2)
     n_params = sum(p.numel() for p in q_net.parameters())
+    paper_update = "paper update s, 128 graphs"
+    versus = ""
+    if size.startswith("paper") and batch_size == 128:
+        versus = speedup(ORIGINAL[paper_update] * update_rate, n_agents, paper_update)
     print(
         f"update [{size}, {n_params / 1e6:.2f} M params] batch {batch_size} graphs x {n_agents} agents: "
         f"{1 / update_rate:6.3f} s/update ({update_rate:5.2f} updates/s), "
         f"bare network {1 / bare_rate:6.3f} s, "
-        f"learner overhead {bare_rate / update_rate:4.2f}x"
+        f"learner overhead {bare_rate / update_rate:4.2f}x{versus}"
     )
 
 
