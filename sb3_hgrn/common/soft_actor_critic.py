@@ -13,6 +13,7 @@ import torch as th
 from stable_baselines3.common.utils import polyak_update
 
 from sb3_hgrn.common.soft_math import (
+    BEHAVIOUR_POLICIES,
     actor_loss,
     critic_minimum,
     gradient_step,
@@ -22,6 +23,23 @@ from sb3_hgrn.common.soft_math import (
     steered_entropy,
 )
 from sb3_hgrn.common.temperature import TemperatureLearner, categorical_entropy
+
+
+def with_behaviour_policy(
+    policy_kwargs: dict[str, Any] | None, behaviour_policy: str, algorithm: str
+) -> dict[str, Any]:
+    """``policy_kwargs`` with the algorithm's ``behaviour_policy`` (which the policy acts with), after
+    a ``ValueError`` for one not in :data:`~sb3_hgrn.common.soft_math.BEHAVIOUR_POLICIES` or for
+    ``policy_kwargs`` naming another; ``algorithm`` names the class in the message."""
+    if behaviour_policy not in BEHAVIOUR_POLICIES:
+        raise ValueError(f"behaviour_policy must be one of {BEHAVIOUR_POLICIES}, got {behaviour_policy!r}.")
+    given = (policy_kwargs or {}).get("behaviour_policy", behaviour_policy)
+    if given != behaviour_policy:
+        raise ValueError(
+            f"policy_kwargs.behaviour_policy={given!r} disagrees with behaviour_policy={behaviour_policy!r}; "
+            f"give {algorithm}'s behaviour_policy argument only."
+        )
+    return {**(policy_kwargs or {}), "behaviour_policy": behaviour_policy}
 
 
 @dataclass

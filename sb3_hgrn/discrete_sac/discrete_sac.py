@@ -13,11 +13,10 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, Schedule
 
 from sb3_hgrn.common.single_agent import TEMPERATURE_SAVE_PARAMS, check_discrete_env, transitions
-from sb3_hgrn.common.soft_actor_critic import SACFigures, SoftActorCritic
+from sb3_hgrn.common.soft_actor_critic import SACFigures, SoftActorCritic, with_behaviour_policy
 from sb3_hgrn.common.soft_math import (
     ACTOR_LOSSES,
     ALPHA_ENTROPIES,
-    BEHAVIOUR_POLICIES,
     bootstrapped,
     critic_minimum,
 )
@@ -110,15 +109,7 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
             raise ValueError(f"alpha_entropy must be one of {ALPHA_ENTROPIES}, got {alpha_entropy!r}.")
         if not isinstance(actor_steps, int) or actor_steps < 1:
             raise ValueError(f"actor_steps must be a positive integer, got {actor_steps!r}.")
-        if behaviour_policy not in BEHAVIOUR_POLICIES:
-            raise ValueError(
-                f"behaviour_policy must be one of {BEHAVIOUR_POLICIES}, got {behaviour_policy!r}."
-            )
-        if (policy_kwargs or {}).get("behaviour_policy", behaviour_policy) != behaviour_policy:
-            raise ValueError(
-                f"policy_kwargs.behaviour_policy={policy_kwargs['behaviour_policy']!r} disagrees with "
-                f"behaviour_policy={behaviour_policy!r}; give DiscreteSAC's behaviour_policy argument only."
-            )
+        policy_kwargs = with_behaviour_policy(policy_kwargs, behaviour_policy, "DiscreteSAC")
         super().__init__(
             policy,
             check_discrete_env(env, "DiscreteSAC", verbose),
@@ -134,7 +125,7 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
             replay_buffer_kwargs=replay_buffer_kwargs,
             optimize_memory_usage=optimize_memory_usage,
             n_steps=n_steps,
-            policy_kwargs={**(policy_kwargs or {}), "behaviour_policy": behaviour_policy},
+            policy_kwargs=policy_kwargs,
             stats_window_size=stats_window_size,
             tensorboard_log=tensorboard_log,
             verbose=verbose,

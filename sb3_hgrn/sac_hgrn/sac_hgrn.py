@@ -11,11 +11,10 @@ from stable_baselines3.common.type_aliases import GymEnv, Schedule
 
 from sb3_hgrn.common.buffers import GraphSamples
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm, check_added_arguments, unroll
-from sb3_hgrn.common.soft_actor_critic import SACFigures, SoftActorCritic
+from sb3_hgrn.common.soft_actor_critic import SACFigures, SoftActorCritic, with_behaviour_policy
 from sb3_hgrn.common.soft_math import (
     ACTOR_LOSSES,
     ALPHA_ENTROPIES,
-    BEHAVIOUR_POLICIES,
     critic_minimum,
 )
 from sb3_hgrn.sac_hgrn.policies import SACHGRNPolicy
@@ -123,10 +122,7 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
             raise ValueError(f"actor_loss must be one of {ACTOR_LOSSES}, got {actor_loss!r}.")
         if alpha_entropy not in ALPHA_ENTROPIES:
             raise ValueError(f"alpha_entropy must be one of {ALPHA_ENTROPIES}, got {alpha_entropy!r}.")
-        if behaviour_policy not in BEHAVIOUR_POLICIES:
-            raise ValueError(
-                f"behaviour_policy must be one of {BEHAVIOUR_POLICIES}, got {behaviour_policy!r}."
-            )
+        policy_kwargs = with_behaviour_policy(policy_kwargs, behaviour_policy, "SACHGRN")
         if actor_steps < 1:
             raise ValueError(f"actor_steps must be an integer >= 1, got {actor_steps!r}.")
         super().__init__(
@@ -166,12 +162,6 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         self.actor_loss = actor_loss
         self.alpha_entropy = alpha_entropy
         self.behaviour_policy = behaviour_policy
-        if self.policy_kwargs.get("behaviour_policy", behaviour_policy) != behaviour_policy:
-            raise ValueError(
-                f"policy_kwargs.behaviour_policy={self.policy_kwargs['behaviour_policy']!r} disagrees with "
-                f"behaviour_policy={behaviour_policy!r}; give SACHGRN's behaviour_policy argument only."
-            )
-        self.policy_kwargs = {**self.policy_kwargs, "behaviour_policy": behaviour_policy}
         self.actor_steps = int(actor_steps)
         if _init_setup_model:
             self._setup_model()
