@@ -7,7 +7,7 @@ import torch as th
 from sb3_hgrn import SACHGRN, evaluate_graph_policy
 from sb3_hgrn.common.temperature import categorical_entropy
 from sb3_hgrn.experiments.config import ConfigError, check_params
-from tests.toy_envs import bit_vec_env, check_deployed_average, costly_tag_env, train_on
+from tests.toy_envs import bit_vec_env, check_deployed_average, costly_tag_env, prefer_action, train_on
 
 
 def quick_model(env, **kwargs):
@@ -259,15 +259,6 @@ def test_alpha_settles_when_it_steers_by_the_boltzmann_entropy(alpha_entropy, se
     assert (model.policy.temperature.alpha.item() > 0.003) == settles
 
 
-def _prefer(network, action: int) -> None:
-    """Make ``network`` output 10 for ``action`` and 0 for the other action, whatever it sees."""
-    head = network.head[0]
-    with th.no_grad():
-        head.weight.zero_()
-        head.bias.zero_()
-        head.bias[action] = 10.0
-
-
 @pytest.mark.parametrize("behaviour_policy, preferred", [("actor", 0), ("critic", 1)])
 def test_behaviour_policy_collects_and_is_deployed(behaviour_policy, preferred, tmp_path):
     """The agents collect with the actor, or with the critic's Boltzmann policy, and ``predict``
@@ -275,8 +266,8 @@ def test_behaviour_policy_collects_and_is_deployed(behaviour_policy, preferred, 
     env = bit_vec_env(n_envs=2)
     model = quick_model(env, behaviour_policy=behaviour_policy, learning_starts=0, gradient_steps=0)
     model.policy.temperature.reset(0.5)
-    _prefer(model.policy.actor, 0)
-    _prefer(model.policy.critics[0], 1)
+    prefer_action(model.policy.actor, 0)
+    prefer_action(model.policy.critics[0], 1)
     model.policy.update_average()  # the deployed average's first update copies the online network
     model.learn(8 * 25)
     stored = model.replay_buffer.actions[: model.replay_buffer.pos]

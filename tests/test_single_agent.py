@@ -14,6 +14,7 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from sb3_hgrn import DiscreteSAC, SoftDQN
 from sb3_hgrn.cli import main
 from sb3_hgrn.common.soft_math import sac_next_value, soft_value
+from tests.toy_envs import prefer_action
 
 ALGORITHMS = {"SoftDQN": SoftDQN, "DiscreteSAC": DiscreteSAC}
 SMALL = dict(
@@ -213,15 +214,6 @@ def test_discrete_sac_names_bad_options(options, message):
         DiscreteSAC("MlpPolicy", "CartPole-v1", **options)
 
 
-def _prefer(network: th.nn.Module, action: int) -> None:
-    """Make ``network`` output 10 for ``action`` and 0 for the others on every observation."""
-    head = [module for module in network.modules() if isinstance(module, th.nn.Linear)][-1]
-    with th.no_grad():
-        head.weight.zero_()
-        head.bias.zero_()
-        head.bias[action] = 10.0
-
-
 @pytest.mark.parametrize("behaviour_policy, preferred", [("actor", 0), ("critic", 1)])
 def test_discrete_sac_collects_and_deploys_its_behaviour_policy(behaviour_policy, preferred, tmp_path):
     """The actor, or the first critic's Boltzmann policy, collects and is what ``predict`` acts
@@ -229,8 +221,8 @@ def test_discrete_sac_collects_and_deploys_its_behaviour_policy(behaviour_policy
     options = {**SMALL, "learning_starts": 0, "gradient_steps": 0, "behaviour_policy": behaviour_policy}
     model = DiscreteSAC("MlpPolicy", "CartPole-v1", seed=0, **options)
     model.policy.temperature.reset(0.5)
-    _prefer(model.policy.actor, 0)
-    _prefer(model.policy.critics[0], 1)
+    prefer_action(model.policy.actor, 0)
+    prefer_action(model.policy.critics[0], 1)
     model.learn(200)
     stored = model.replay_buffer.actions[: model.replay_buffer.pos]
     assert (stored == preferred).mean() > 0.99  # the other action has probability e^-20

@@ -107,6 +107,16 @@ class BadValueEnv(DictOnlyEnv):
         return super().neighbors() + self.offset
 
 
+def prefer_action(network: th.nn.Module, action: int) -> None:
+    """Make ``network`` output 10 for ``action`` and 0 for the others on every observation (its last
+    ``Linear`` layer, the head, gives a constant)."""
+    head = [module for module in network.modules() if isinstance(module, th.nn.Linear)][-1]
+    with th.no_grad():
+        head.weight.zero_()
+        head.bias.zero_()
+        head.bias[action] = 10.0
+
+
 def bit_vec_env(n_envs: int = 4, n_agents: int = 4, seed: int = 0):
     """Graph VecEnv of ``n_envs`` copies of :class:`NeighborBitEnv` with 8-step episodes."""
     return make_graph_vec_env(lambda: NeighborBitEnv(n_agents, max_cycles=8), n_envs=n_envs, seed=seed)
