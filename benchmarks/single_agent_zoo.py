@@ -1,11 +1,13 @@
-"""SoftDQN and DiscreteSAC against SB3's DQN with the RL Zoo's tuned hyperparameters, on single-agent envs.
+"""SoftDQN and DiscreteSAC against SB3's DQN and PPO with the RL Zoo's tuned settings, on single-agent envs.
 
 Run: nice -n 10 python benchmarks/single_agent_zoo.py --envs CartPole-v1 --seeds 5 --threads 1
-     [--algorithms soft_dqn discrete_sac dqn] [--results benchmarks/single_agent_zoo.json]
+     [--algorithms soft_dqn discrete_sac dqn ppo] [--results benchmarks/single_agent_zoo.json]
 
 Every algorithm trains each env for the RL Zoo's DQN budget (``n_timesteps`` of rl_zoo3's
 ``hyperparams/dqn.yml``, read from the installed ``rl-zoo3`` package: ``pip install -e ".[zoo]"``) with
-seeds 0..N-1; DQN with the Zoo's tuned settings for the env, SoftDQN and DiscreteSAC with those of
+seeds 0..N-1; DQN and PPO with the Zoo's tuned settings for the env (``dqn.yml``, ``ppo.yml``: PPO's
+``n_envs`` copies, ``lin_`` schedules and ``normalize``, the evaluation then reading the training
+copies' observation statistics), SoftDQN and DiscreteSAC with those of
 ``sb3_hgrn/hyperparams/<algorithm>.yml``. The score of a run is the mean return of its greedy policy
 over ``--eval-episodes`` episodes of an env seeded ``seed + 1000``. The table gives the IQM over seeds
 with its 95 % stratified-bootstrap interval (:mod:`sb3_hgrn.experiments.stats`, rliable) and the wall
@@ -33,17 +35,23 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 import yaml
-from stable_baselines3 import DQN
+from stable_baselines3 import DQN, PPO
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
 from sb3_hgrn.common.files import write_text_atomically
 from sb3_hgrn.common.torch_layers import AgentViewCNN
 from sb3_hgrn.experiments.single_agent import SINGLE_AGENT_PRESETS, env_settings, make_model
 from sb3_hgrn.experiments.stats import iqm_interval
 
-ZOO_ONLY_KEYS = {"n_timesteps", "policy"}
-"""Keys of a Zoo entry that are not DQN arguments."""
+ZOO_ONLY_KEYS = {"n_timesteps", "policy", "n_envs", "normalize"}
+"""Keys of a Zoo entry that are not arguments of the algorithm."""
+
+ZOO_ALGORITHMS = {"dqn": DQN, "ppo": PPO}
+"""The SB3 anchors, by the name of their RL Zoo hyperparameter file."""
 
 MINATAR_DQN: dict[str, Any] = dict(
     n_timesteps=5_000_000,
@@ -71,11 +79,12 @@ MINATAR_DQN: dict[str, Any] = dict(
 its examples/dqn.py: one 3x3 convolution of 16 channels, 128 hidden units, centred RMSProp)."""
 
 
-def zoo_dqn_settings(env: str) -> dict[str, Any]:
-    """The RL Zoo's DQN settings of ``env`` from the installed rl_zoo3's ``hyperparams/dqn.yml``
-    (``policy_kwargs``, a ``dict(...)`` string there, read as literals), or :data:`MINATAR_DQN` for
-    MinAtar; ``SystemExit`` naming the install command or the env when they are missing."""
-    if env.startswith("MinAtar/"):
+def zoo_settings(algorithm: str, env: str) -> dict[str, Any]:
+    """The RL Zoo's settings of ``algorithm`` (``"dqn"``, ``"ppo"``) for ``env`` from the installed
+    rl_zoo3's ``hyperparams/<algorithm>.yml`` (``policy_kwargs``, a ``dict(...)`` string there, read as
+    literals), or for DQN on MinAtar :data:`MINATAR_DQN`; ``SystemExit`` naming the install command or
+    the env when they are missing."""
+    if algorithm == "dqn" and env.startswith("MinAtar/"):
         return dict(MINATAR_DQN)
     spec = importlib.util.find_spec("rl_zoo3")
     if spec is None or not spec.submodule_search_locations:
@@ -83,14 +92,38 @@ def zoo_dqn_settings(env: str) -> dict[str, Any]:
             "The RL Zoo's hyperparameters need the rl-zoo3 package: "
             'pip install -e ".[zoo]" (or pip install rl-zoo3)'
         )
-    path = Path(spec.submodule_search_locations[0]) / "hyperparams" / "dqn.yml"
+    path = Path(spec.submodule_search_locations[0]) / "hyperparams" / f"{algorithm}.yml"
     table = yaml.safe_load(path.read_text(encoding="utf-8"))
     if env not in table:
-        raise SystemExit(f"{path} has no DQN settings for {env!r}.")
+        raise SystemExit(f"{path} has no {algorithm.upper()} settings for {env!r}.")
     settings = dict(table[env])
     if isinstance(settings.get("policy_kwargs"), str):
         settings["policy_kwargs"] = literal_call_kwargs(settings["policy_kwargs"])
     return settings
+
+
+def zoo_value(value: Any) -> Any:
+    """A Zoo setting as SB3 takes it: ``"lin_X"`` becomes the schedule falling linearly from ``X``
+    to 0 over training (rl_zoo3's ``linear_schedule``); other values are kept."""
+    if isinstance(value, str) and value.startswith("lin_"):
+        initial = float(value[len("lin_") :])
+        return lambda progress_remaining: progress_remaining * initial
+    return value
+
+
+def make_zoo_model(algorithm: str, env: str, seed: int) -> tuple[BaseAlgorithm, VecEnv]:
+    """An SB3 anchor with the Zoo's settings for ``env`` and its greedy evaluation env: one copy seeded
+    ``seed + 1000``, normalised with the training copies' statistics where the Zoo normalises."""
+    settings = zoo_settings(algorithm, env)
+    arguments = {key: zoo_value(value) for key, value in settings.items() if key not in ZOO_ONLY_KEYS}
+    train_env = make_vec_env(env, n_envs=int(settings.get("n_envs", 1)), seed=seed)
+    eval_env = make_vec_env(env, n_envs=1, seed=seed + 1000)
+    if settings.get("normalize"):
+        train_env = VecNormalize(train_env, gamma=arguments.get("gamma", 0.99))
+        eval_env = VecNormalize(eval_env, training=False, norm_reward=False)
+        eval_env.obs_rms = train_env.obs_rms  # the same statistics object: read after training
+    model = ZOO_ALGORITHMS[algorithm](settings["policy"], train_env, seed=seed, **arguments)
+    return model, eval_env
 
 
 def literal_call_kwargs(text: str) -> dict[str, Any]:
@@ -104,16 +137,19 @@ def literal_call_kwargs(text: str) -> dict[str, Any]:
 def train_once(algorithm: str, env: str, seed: int, timesteps: int, eval_episodes: int) -> dict[str, Any]:
     """Train one run and evaluate its greedy policy: its score, steps and training wall time."""
     if algorithm == "dqn":
-        settings = zoo_dqn_settings(env)
+        settings = zoo_settings("dqn", env)
         arguments = {key: value for key, value in settings.items() if key not in ZOO_ONLY_KEYS}
         model = DQN(settings["policy"], Monitor(gym.make(env)), seed=seed, **arguments)
+    elif algorithm in ZOO_ALGORITHMS:
+        model, eval_env = make_zoo_model(algorithm, env, seed)
     else:
         model = make_model(algorithm, env, env_settings(algorithm, env), seed)
     start = time.perf_counter()
     model.learn(timesteps)
     wall_time = time.perf_counter() - start
-    eval_env = Monitor(gym.make(env))
-    eval_env.reset(seed=seed + 1000)
+    if algorithm not in ZOO_ALGORITHMS or algorithm == "dqn":
+        eval_env = Monitor(gym.make(env))
+        eval_env.reset(seed=seed + 1000)
     score, _ = evaluate_policy(model, eval_env, n_eval_episodes=eval_episodes, deterministic=True)
     return {"score": float(score), "env_steps": int(model.num_timesteps), "wall_time_s": wall_time}
 
@@ -154,8 +190,8 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--envs", nargs="+", default=["CartPole-v1"])
-    parser.add_argument("--algorithms", nargs="+", default=[*SINGLE_AGENT_PRESETS, "dqn"],
-                        choices=[*SINGLE_AGENT_PRESETS, "dqn"])  # fmt: skip
+    parser.add_argument("--algorithms", nargs="+", default=[*SINGLE_AGENT_PRESETS, *ZOO_ALGORITHMS],
+                        choices=[*SINGLE_AGENT_PRESETS, *ZOO_ALGORITHMS])  # fmt: skip
     parser.add_argument("--seeds", type=int, default=5, help="seeds 0..N-1")
     parser.add_argument("--eval-episodes", type=int, default=20)
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
@@ -165,7 +201,7 @@ def main() -> None:
     path = Path(args.results)
     results = load_results(path)
     for env in args.envs:
-        timesteps = int(zoo_dqn_settings(env)["n_timesteps"])
+        timesteps = int(zoo_settings("dqn", env)["n_timesteps"])
         for seed in range(args.seeds):
             for algorithm in args.algorithms:
                 key = f"{env}/{algorithm}/{seed}"
