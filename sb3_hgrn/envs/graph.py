@@ -23,10 +23,12 @@ METRICS = ("chebyshev", "euclidean")
 
 # Up to this many agents (and while its packed keys fit in int32), one (n_agents, n_agents) matrix of
 # sort keys is built and sorted row by row; otherwise agents are bucketed into square blocks and only
-# the 3 x 3 blocks around each agent are searched, so cost and memory grow linearly. Measured on a
-# 2-core CPU (Chebyshev radius 3, about 6 agents in range), dense against blocked: 33 us against 78 us
-# at 100 agents, 91 us against 126 us at 256, 147 us against 129 us at 300.
-DENSE_MAX_AGENTS = 256
+# the 3 x 3 blocks around each agent are searched, so cost and memory grow linearly. Measured with
+# int32 keys on a 2-core AMD EPYC (AVX2; Chebyshev radius 3, about 6 agents in range), dense against
+# blocked: 53 us against 108 us at 100 agents, 66 against 119 at 128, 122 against 123 at 140, 1,007
+# against 172 at 256 (numpy's vectorised sort is fastest on rows of at most 128 keys;
+# benchmarks/grid_neighbors.py).
+DENSE_MAX_AGENTS = 128
 
 # The blocks are at least ``floor(radius)`` cells wide, and wider where agents are spread out so far
 # that there would be more than this many blocks per agent (keeps memory linear in n_agents).
