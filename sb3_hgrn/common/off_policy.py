@@ -720,7 +720,7 @@ class GraphOffPolicyAlgorithm(AlgorithmNamedRuns, TemperatureLearner, OffPolicyA
     def _choose_actions(self, hidden: np.ndarray, learning_starts: int) -> tuple[np.ndarray, np.ndarray]:
         """Exploration actions ``(n_envs,)`` and the new recurrent state ``(n_envs, state_dim)``."""
         obs_tensor, _ = self.policy.obs_to_tensor(self._last_obs)
-        with th.no_grad():
+        with th.inference_mode():  # as predict: no graph, no autograd bookkeeping
             actions, new_hidden = self._behaviour_act(obs_tensor, th.as_tensor(hidden, device=self.device))
         actions = actions.cpu().numpy()
         mask = self._last_obs.get("action_mask")
