@@ -150,9 +150,10 @@ def record_episode(
 ) -> EpisodeRecord:
     """Run ``model`` on a one-copy graph VecEnv for ``n_steps`` steps and record ``agent``'s internals.
 
-    The recorded network is the model's first recurrent network: the Q-network of SoftHGRN, the
-    actor of SACHGRN. The env is reset first; the model's recurrent state is threaded from step to
-    step (and zeroed when an episode ends) as in ``predict``.
+    The recorded network is the model's online acting network (``policy.online_network``): the
+    Q-network of SoftHGRN, the actor of SACHGRN, or its first critic when the critic's Boltzmann
+    policy acts (``behaviour_policy="critic"``, the default). The env is reset first; the model's
+    recurrent state is threaded from step to step (and zeroed when an episode ends) as in ``predict``.
 
     :param model: a SoftHGRN or SACHGRN model whose policy knows the env's agent count (built on
         ``env``, or loaded onto it with ``SoftHGRN.load(path, env=env)``).
@@ -174,7 +175,8 @@ def record_episode(
         raise ValueError(f"n_steps must be >= 1, got {n_steps}.")
     if scripted_actions is not None and np.shape(scripted_actions) != (n_steps, n_agents):
         raise ValueError(f"scripted_actions must have shape {(n_steps, n_agents)}.")
-    network = policy.recurrent_networks[0]
+    network = policy.online_network
+    place = next(i for i, carried in enumerate(policy.recurrent_networks) if carried is network)
     copy = env.envs[0] if hasattr(env, "envs") else None
     has_cells = callable(getattr(copy, "agent_cells", None))
     columns: dict[str, list[np.ndarray]] = {field.name: [] for field in fields(EpisodeRecord)}
@@ -184,7 +186,7 @@ def record_episode(
     with torch.no_grad():
         for step in range(n_steps):
             obs, neighbors, groups = policy.to_graphs(policy.obs_to_tensor(observations)[0])
-            own_state = policy.split_state(torch.as_tensor(state, device=policy.device))[0]
+            own_state = policy.split_state(torch.as_tensor(state, device=policy.device))[place]
             internals = forward_with_internals(network, obs, neighbors, own_state, groups)
             if has_cells:
                 columns["cells"].append(copy.agent_cells())

@@ -23,6 +23,10 @@ OWN_GROUP = {"communication": "gat"}  # homogeneous attention: each agent group 
 BASELINE_Q = dict(stochastic=False, reward_scale=1.0)
 """The Q-learning baselines: greedy, hard-max targets on the env's own rewards (no scaling)."""
 
+PAPER_ACTOR_CRITIC = dict(behaviour_policy="actor", reward_scale=1.0)
+"""SACHGRN as the paper runs it: the actor collects and is deployed, on the env's own rewards (the
+library's SACHGRN defaults collect and deploy with the critic's Boltzmann policy on scaled rewards)."""
+
 PRESETS: dict[str, tuple[type[GraphOffPolicyAlgorithm], dict[str, Any]]] = {
     # baselines
     "dqn": (SoftHGRN, dict(BASELINE_Q, policy_kwargs={**NO_COMMUNICATION, **NO_MEMORY})),
@@ -32,7 +36,10 @@ PRESETS: dict[str, tuple[type[GraphOffPolicyAlgorithm], dict[str, Any]]] = {
     "maac": (
         SACHGRN,
         dict(
+            PAPER_ACTOR_CRITIC,
             learn_alpha=False,
+            exploration_initial_eps=0.0,
+            exploration_final_eps=0.0,
             policy_kwargs=dict(actor_kwargs={**NO_COMMUNICATION, **NO_MEMORY}, critic_kwargs=dict(NO_MEMORY)),
         ),
     ),
@@ -110,6 +117,7 @@ def preset_kwargs(
             buffer_size=PAPER_BUFFER_TRANSITIONS * n_envs,
             tau=1.0 if algorithm is SoftHGRN else 0.01,
             policy_kwargs=dict(PAPER_SIZE),
+            **(PAPER_ACTOR_CRITIC if algorithm is SACHGRN else {}),
         )
         kwargs = merge(paper_kwargs, kwargs)
     return algorithm, kwargs

@@ -45,9 +45,14 @@ def test_presets_configure_the_ablations():
     assert make_model("maac", env, learn_alpha=True).learn_alpha
     sac = make_model("sac_hgrn-R", env, policy_kwargs=dict(n_critics=2))
     assert len(sac.policy.critics) == 2 and sac.policy.actor.gru is None
-    assert make_model("soft_hgrn", env).reward_scale == make_model("soft_hgrn-S", env).reward_scale == "auto"
-    unscaled = ("dqn", "commnet", "dgn", "hgn", "sac_hgrn")
+    for name in ("soft_hgrn", "soft_hgrn-S", "sac_hgrn", "sac_hgrn-S"):
+        assert make_model(name, env).reward_scale == "auto"
+    unscaled = ("dqn", "commnet", "dgn", "hgn", "maac")
     assert all(make_model(name, env).reward_scale == 1.0 for name in unscaled)
+    # SAC-HGRN collects with its critic's Boltzmann policy and 30 % random actions; MAAC as the paper
+    sac = make_model("sac_hgrn", env)
+    assert sac.behaviour_policy == "critic" and sac.exploration_rate == 0.3 and sac.alpha_max_step == 0.05
+    assert maac.behaviour_policy == "actor" and maac.exploration_rate == 0.0
 
 
 def test_paper_presets_use_the_paper_size_and_schedule():
@@ -55,6 +60,8 @@ def test_paper_presets_use_the_paper_size_and_schedule():
     assert algorithm is SoftHGRN and kwargs["stochastic"] is False
     assert kwargs["policy_kwargs"] == PAPER_SIZE and kwargs["batch_size"] == 128
     assert kwargs["buffer_size"] == 50_000 * 100 and kwargs["tau"] == 1.0 and kwargs["reward_scale"] == 1.0
+    _, sac_kwargs = preset_kwargs("sac_hgrn", paper=True)
+    assert sac_kwargs["behaviour_policy"] == "actor" and sac_kwargs["reward_scale"] == 1.0
     _, kwargs = preset_kwargs("maac", paper=True)
     assert kwargs["policy_kwargs"]["hidden_dim"] == 256 and kwargs["tau"] == 0.01
     assert kwargs["policy_kwargs"]["actor_kwargs"] == {"communication": "none", "recurrent": False}

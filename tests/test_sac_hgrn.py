@@ -264,7 +264,10 @@ def test_behaviour_policy_collects_and_is_deployed(behaviour_policy, preferred, 
     """The agents collect with the actor, or with the critic's Boltzmann policy, and ``predict``
     deploys that same policy (its average), before and after a save and load."""
     env = bit_vec_env(n_envs=2)
-    model = quick_model(env, behaviour_policy=behaviour_policy, learning_starts=0, gradient_steps=0)
+    no_random_actions = dict(exploration_initial_eps=0.0, exploration_final_eps=0.0)
+    model = quick_model(
+        env, behaviour_policy=behaviour_policy, learning_starts=0, gradient_steps=0, **no_random_actions
+    )
     model.policy.temperature.reset(0.5)
     prefer_action(model.policy.actor, 0)
     prefer_action(model.policy.critics[0], 1)
@@ -303,7 +306,9 @@ def test_average_tau_deploys_an_averaged_actor_and_collects_with_the_online_one(
     """With ``average_tau`` every actor step moves the averaged actor, ``predict`` acts with it and the
     online actor collects; the average survives save/load."""
     env = bit_vec_env(n_envs=2)
-    model = quick_model(env, policy_kwargs=dict(hidden_dim=16, n_heads=2, average_tau=0.1))
+    model = quick_model(
+        env, behaviour_policy="actor", policy_kwargs=dict(hidden_dim=16, n_heads=2, average_tau=0.1)
+    )
     model.learn(400)
     assert model.policy.average_network is model.policy.actor_average
     check_deployed_average(model, env, tmp_path)

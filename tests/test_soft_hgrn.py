@@ -117,7 +117,7 @@ def test_the_soft_policy_collects_with_epsilon_0_3_unless_told_otherwise():
     chosen = quick_model(env, exploration_initial_eps=1.0, exploration_final_eps=0.0)
     assert (chosen.exploration_initial_eps, chosen.exploration_final_eps) == (1.0, 0.0)
     sac = SACHGRN("GraphPolicy", env, policy_kwargs=dict(hidden_dim=16, n_heads=2))
-    assert (sac.exploration_initial_eps, sac.exploration_final_eps) == (0.0, 0.0)
+    assert (sac.exploration_initial_eps, sac.exploration_final_eps) == (0.3, 0.3)
 
 
 def test_stochastic_false_is_greedy_with_epsilon_greedy_exploration():

@@ -283,8 +283,10 @@ class GraphOffPolicyAlgorithm(AlgorithmNamedRuns, TemperatureLearner, OffPolicyA
 
     policy: GraphPolicy
     replay_buffer: GraphReplayBuffer
-    stochastic_exploration_eps: ClassVar[float] = 0.0
-    """Epsilon of a stochastic policy when ``exploration_initial_eps``/``_final_eps`` are ``None``."""
+    stochastic_exploration_eps: ClassVar[float] = 0.3
+    """Epsilon of a stochastic policy when ``exploration_initial_eps``/``_final_eps`` are ``None``: 30 %
+    of each agent's actions uniform while collecting, the level of the original code's test mode
+    (docs/results_defaults.md)."""
     reward_scale: float | str = 1.0
     """The ``reward_scale`` argument (models saved before it existed load with 1.0, as they trained)."""
     applied_reward_scale: float = 1.0

@@ -5,7 +5,7 @@ entropy ``H`` of the batch is measured and the learned parameter (alpha, or ``lo
 ``log_space``) takes one optimiser step on ``loss = param * (H - H_target)``: its gradient
 ``H - H_target`` lowers alpha while the policy is more random than the target and raises it while
 the policy is too greedy. One update changes alpha by at most ``max_step_ratio`` of its value (the
-algorithms' ``alpha_max_step``: 1 % as in the paper, 5 % by default for SoftHGRN), whatever the
+algorithms' ``alpha_max_step``: 1 % as in the paper, 5 % by default for SoftHGRN and SACHGRN), whatever the
 optimiser: the bound applies to the step the optimiser took, not to the gradient (Adam normalises
 gradients, so a gradient bound would not bound its steps). Alpha stays above ``min_alpha``.
 

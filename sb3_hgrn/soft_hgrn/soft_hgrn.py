@@ -79,7 +79,6 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"GraphPolicy": SoftHGRNPolicy}
     policy: SoftHGRNPolicy
-    stochastic_exploration_eps: ClassVar[float] = 0.3
 
     def __init__(
         self,
