@@ -54,6 +54,11 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
     ``tau=0.01`` (used by ``presets.make_model(..., paper=True)``) left the critic behind a nearly
     frozen target at CPU budgets (docs/results.md).
 
+    Defaults (``reward_scale="auto"``, ``alpha_learning_rate=1e-2``, ``alpha_max_step=0.05``,
+    collecting with 30 % uniform random actions per agent and with the critic's policy) are
+    SoftHGRN's, chosen on a suite of eight envs (docs/results_defaults.md, "SAC-HGRN's defaults");
+    ``make_model(..., paper=True)`` and the ``maac`` preset keep the paper's.
+
     :param actor_loss: ``"boltzmann"``, ``"standard"`` or ``"policy_gradient"``.
     :param alpha_entropy: the entropy alpha steers toward the target: ``"boltzmann"`` (that of the
         critic's Boltzmann policy ``softmax(Q / alpha)``, which every actor loss moves the actor
@@ -69,10 +74,6 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         stays 0.4 to 2 nats above the Boltzmann policy's on the suite of docs/results_defaults.md);
         collecting with it scored 542 against 1,670 on UAV-MBS there.
 
-    Defaults (``reward_scale="auto"``, ``alpha_learning_rate=1e-2``, ``alpha_max_step=0.05``,
-    collecting with 30 % uniform random actions per agent and with the critic's policy) are
-    SoftHGRN's, chosen on a suite of eight envs (docs/results_defaults.md, "SAC-HGRN's defaults");
-    ``make_model(..., paper=True)`` and the ``maac`` preset keep the paper's.
     :param actor_steps: actor gradient steps on each batch, after its one critic step: more let the
         actor keep up with a critic that moves fast (docs/results.md).
     :param policy_kwargs: network options for both networks, plus ``n_critics``, ``actor_kwargs``,
