@@ -136,6 +136,7 @@ def literal_call_kwargs(text: str) -> dict[str, Any]:
 
 def train_once(algorithm: str, env: str, seed: int, timesteps: int, eval_episodes: int) -> dict[str, Any]:
     """Train one run and evaluate its greedy policy: its score, steps and training wall time."""
+    eval_env = None  # a Monitor env reset with seed + 1000, unless the model needs its own (PPO's)
     if algorithm == "dqn":
         settings = zoo_settings("dqn", env)
         arguments = {key: value for key, value in settings.items() if key not in ZOO_ONLY_KEYS}
@@ -147,7 +148,7 @@ def train_once(algorithm: str, env: str, seed: int, timesteps: int, eval_episode
     start = time.perf_counter()
     model.learn(timesteps)
     wall_time = time.perf_counter() - start
-    if algorithm not in ZOO_ALGORITHMS or algorithm == "dqn":
+    if eval_env is None:
         eval_env = Monitor(gym.make(env))
         eval_env.reset(seed=seed + 1000)
     score, _ = evaluate_policy(model, eval_env, n_eval_episodes=eval_episodes, deterministic=True)
