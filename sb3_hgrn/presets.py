@@ -113,13 +113,13 @@ def preset_kwargs(
     if paper:
         paper_kwargs = dict(
             PAPER_SCHEDULE,
-            **PAPER_EXPLORATION,
             buffer_size=PAPER_BUFFER_TRANSITIONS * n_envs,
             tau=1.0 if algorithm is SoftHGRN else 0.01,
             policy_kwargs=dict(PAPER_SIZE),
             **(PAPER_ACTOR_CRITIC if algorithm is SACHGRN else {}),
         )
-        kwargs = merge(paper_kwargs, kwargs)
+        # every method explores as the original: over a preset's own exploration (maac's none)
+        kwargs = merge(merge(paper_kwargs, kwargs), PAPER_EXPLORATION)
     return algorithm, kwargs
 
 

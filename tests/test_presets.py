@@ -64,6 +64,7 @@ def test_paper_presets_use_the_paper_size_and_schedule():
     assert sac_kwargs["behaviour_policy"] == "actor" and sac_kwargs["reward_scale"] == 1.0
     _, kwargs = preset_kwargs("maac", paper=True)
     assert kwargs["policy_kwargs"]["hidden_dim"] == 256 and kwargs["tau"] == 0.01
+    assert (kwargs["exploration_initial_eps"], kwargs["exploration_final_eps"]) == (0.9, 0.3)
     assert kwargs["policy_kwargs"]["actor_kwargs"] == {"communication": "none", "recurrent": False}
 
 
