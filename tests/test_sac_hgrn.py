@@ -34,6 +34,17 @@ def test_learns_the_neighbour_bit_task(actor_loss, tau):
     assert team_return >= 29.0  # 32 is perfect; without communication 16 is the best expectation
 
 
+def test_boltzmann_critic_targets_train_without_the_actors_next_logits(tmp_path, monkeypatch):
+    model = quick_model(bit_vec_env(), critic_target="boltzmann")
+    calls = []
+    monkeypatch.setattr(model, "_next_actor_logits", lambda *args: calls.append(args))
+    model.learn(200)
+    assert model._n_updates > 0 and calls == []
+    monkeypatch.undo()
+    model.save(tmp_path / "model")
+    assert SACHGRN.load(tmp_path / "model").critic_target == "boltzmann"
+
+
 def test_state_holds_actor_and_critic_memories():
     env = bit_vec_env(n_envs=2)
     model = quick_model(env, policy_kwargs=dict(hidden_dim=16, n_critics=2))
@@ -53,9 +64,9 @@ def test_exact_soft_value_and_greedy_value():
     logits = th.log(th.tensor([[[0.25, 0.75]]]))
     alpha = th.tensor(0.5)
     expected = 0.25 * (1.0 - 0.5 * math.log(0.25)) + 0.75 * (3.0 - 0.5 * math.log(0.75))
-    assert model._next_value(next_q, logits, alpha).item() == pytest.approx(expected, rel=1e-6)
+    assert model._next_value(next_q, lambda: logits, alpha).item() == pytest.approx(expected, rel=1e-6)
     model.stochastic = False
-    assert model._next_value(next_q, logits, alpha).item() == pytest.approx(3.0)
+    assert model._next_value(next_q, lambda: logits, alpha).item() == pytest.approx(3.0)
 
 
 ALIVE = th.ones(1, 1)  # the one agent of the hand-computed losses lives
@@ -137,6 +148,8 @@ def test_bad_arguments():
         quick_model(bit_vec_env(n_envs=1), policy_kwargs=dict(n_critics=0))
     with pytest.raises(ValueError, match="behaviour_policy"):
         quick_model(bit_vec_env(n_envs=1), behaviour_policy="random")
+    with pytest.raises(ValueError, match="critic_target must be one of"):
+        quick_model(bit_vec_env(n_envs=1), critic_target="critic")
     with pytest.raises(ValueError, match="actor_steps must be an integer >= 1, got 0"):
         quick_model(bit_vec_env(n_envs=1), actor_steps=0)
     with pytest.raises(

@@ -188,6 +188,26 @@ def test_targets_are_the_shared_soft_values():
     assert sac_next_value(q, logits, alpha).item() == pytest.approx(expected, rel=1e-6)
 
 
+def test_boltzmann_critic_targets_average_over_the_critics_policy_without_the_actor():
+    """With ``critic_target="boltzmann"`` the next value is the soft expectation over
+    ``softmax(Q / alpha)``, which is the soft value, and the actor is not run for it."""
+    q = th.tensor([[1.0, 3.0, -2.0], [0.5, 0.0, 0.2]])
+    alpha = th.tensor([0.7])
+
+    def unused_actor() -> th.Tensor:
+        raise AssertionError("the actor ran for a Boltzmann target")
+
+    model = DiscreteSAC("MlpPolicy", "CartPole-v1", critic_target="boltzmann")
+    boltzmann = model._next_value(q, unused_actor, alpha)
+    assert th.allclose(boltzmann, sac_next_value(q, q / alpha, alpha))
+    assert th.allclose(boltzmann, soft_value(q, alpha))
+    model.critic_target = "actor"
+    uniform_actor = th.zeros_like(q)
+    assert th.allclose(
+        model._next_value(q, lambda: uniform_actor, alpha), sac_next_value(q, uniform_actor, alpha)
+    )
+
+
 @pytest.mark.parametrize("name", ALGORITHMS)
 @pytest.mark.parametrize("env_class, kind", [(ContinuousEnv, "Box"), (MultiDiscreteEnv, "MultiDiscrete")])
 def test_rejects_action_spaces_other_than_discrete(name, env_class, kind):
@@ -203,6 +223,7 @@ def test_rejects_action_spaces_other_than_discrete(name, env_class, kind):
         (dict(actor_steps=0), "actor_steps must be a positive integer, got 0"),
         (dict(policy_kwargs=dict(n_critics=0)), "n_critics must be a positive integer, got 0"),
         (dict(behaviour_policy="target"), "behaviour_policy must be one of"),
+        (dict(critic_target="critic"), "critic_target must be one of"),
         (
             dict(behaviour_policy="critic", policy_kwargs=dict(behaviour_policy="actor")),
             "policy_kwargs.behaviour_policy='actor' disagrees",

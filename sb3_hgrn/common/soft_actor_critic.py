@@ -14,12 +14,14 @@ from stable_baselines3.common.utils import polyak_update
 
 from sb3_hgrn.common.soft_math import (
     BEHAVIOUR_POLICIES,
+    CRITIC_TARGETS,
     actor_loss,
     critic_minimum,
     gradient_step,
     masked_mean,
     q_regression_loss,
     sac_next_value,
+    soft_q_next_value,
     steered_entropy,
 )
 from sb3_hgrn.common.temperature import TemperatureLearner, categorical_entropy
@@ -42,6 +44,13 @@ def with_behaviour_policy(
     return {**(policy_kwargs or {}), "behaviour_policy": behaviour_policy}
 
 
+def check_critic_target(critic_target: str) -> None:
+    """Raise a ``ValueError`` unless ``critic_target`` is one of
+    :data:`~sb3_hgrn.common.soft_math.CRITIC_TARGETS`."""
+    if critic_target not in CRITIC_TARGETS:
+        raise ValueError(f"critic_target must be one of {CRITIC_TARGETS}, got {critic_target!r}.")
+
+
 @dataclass
 class SACFigures:
     """What one training round of gradient steps logs, one entry per step."""
@@ -57,14 +66,16 @@ class SoftActorCritic(TemperatureLearner):
     """Mixin of the discrete-SAC algorithms: targets, losses, one gradient step and its logs.
 
     The algorithm provides ``policy`` (``actor``, ``critics``, ``critic_targets``,
-    ``actor_optimizer``, ``critic_optimizer`` and what :class:`TemperatureLearner` needs), the options
-    ``actor_loss``, ``alpha_entropy``, ``actor_steps``, ``stochastic``, ``max_grad_norm``, ``tau`` and
-    ``target_update_interval`` (gradient steps), and SB3's ``_n_updates``.
+    ``actor_optimizer``, ``critic_optimizer`` and what :class:`TemperatureLearner` needs), the
+    options ``actor_loss``, ``alpha_entropy``, ``critic_target``, ``actor_steps``, ``stochastic``,
+    ``max_grad_norm``, ``tau`` and ``target_update_interval`` (gradient steps), and SB3's
+    ``_n_updates``.
     """
 
     policy: Any
     actor_loss: str
     alpha_entropy: str
+    critic_target: str
     actor_steps: int
     stochastic: bool
     max_grad_norm: float
@@ -72,11 +83,18 @@ class SoftActorCritic(TemperatureLearner):
     target_update_interval: int
     _n_updates: int
 
-    def _next_value(self, next_q: th.Tensor, next_logits: th.Tensor, alpha: th.Tensor) -> th.Tensor:
-        """Value ``(...)`` of the next observations from target Q-values and actor logits
-        ``(..., n_actions)``: the exact soft expectation over actions, or the Q-value of the greedy
-        action for ``stochastic=False`` (:func:`~sb3_hgrn.common.soft_math.sac_next_value`)."""
-        return sac_next_value(next_q, next_logits, alpha, self.stochastic)
+    def _next_value(
+        self, next_q: th.Tensor, next_logits: Callable[[], th.Tensor], alpha: th.Tensor
+    ) -> th.Tensor:
+        """Value ``(...)`` of the next observations from the target critics' minimum ``next_q``
+        ``(..., n_actions)``. With ``critic_target="actor"`` it is the exact soft expectation over
+        the actor's policy, whose logits ``next_logits()`` computes (or the Q-value of its greedy
+        action for ``stochastic=False``; :func:`~sb3_hgrn.common.soft_math.sac_next_value`). With
+        ``"boltzmann"`` it is that over ``softmax(next_q / alpha)``, the soft value (or the greedy
+        maximum; :func:`~sb3_hgrn.common.soft_math.soft_q_next_value`), and the actor is not run."""
+        if self.critic_target == "boltzmann":
+            return soft_q_next_value(next_q, alpha, self.stochastic)
+        return sac_next_value(next_q, next_logits(), alpha, self.stochastic)
 
     def _policy_loss(
         self, logits: th.Tensor, q_values: th.Tensor, alpha: th.Tensor, mask: th.Tensor

@@ -23,6 +23,11 @@ BEHAVIOUR_POLICIES = ("actor", "critic")
 """The policies a discrete SAC can collect with and deploy: the actor's, or the first critic's
 Boltzmann policy ``softmax(Q / alpha)``."""
 
+CRITIC_TARGETS = ("actor", "boltzmann")
+"""The policies a discrete SAC's critic targets average over at the next observations: the actor's
+(:func:`sac_next_value`), or the Boltzmann policy of the target critics' minimum, whose soft
+expectation is the soft value (:func:`soft_q_next_value`)."""
+
 
 def masked_mean(values: th.Tensor, mask: th.Tensor) -> th.Tensor:
     """Mean of ``values`` ``(...)`` over the entries where ``mask`` (same shape, 1 or 0) is 1: the

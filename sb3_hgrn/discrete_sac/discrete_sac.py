@@ -13,7 +13,12 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, Schedule
 
 from sb3_hgrn.common.single_agent import TEMPERATURE_SAVE_PARAMS, check_discrete_env, transitions
-from sb3_hgrn.common.soft_actor_critic import SACFigures, SoftActorCritic, with_behaviour_policy
+from sb3_hgrn.common.soft_actor_critic import (
+    SACFigures,
+    SoftActorCritic,
+    check_critic_target,
+    with_behaviour_policy,
+)
 from sb3_hgrn.common.soft_math import (
     ACTOR_LOSSES,
     ALPHA_ENTROPIES,
@@ -46,6 +51,10 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
         ``"critic"``, the first critic's Boltzmann policy ``softmax(Q / alpha)`` (the policy every
         actor loss moves the actor toward; the actor still gives the targets' soft values), as
         :class:`~sb3_hgrn.SACHGRN`'s option of that name.
+    :param critic_target: ``"actor"`` (the targets above) or ``"boltzmann"``: the soft expectation
+        over ``softmax(min_i Q_target_i(o', .) / alpha)`` instead of the actor's policy, which is the
+        soft value ``alpha * logsumexp(min_i Q_target_i(o', .) / alpha)``, as :class:`~sb3_hgrn.SACHGRN`'s
+        option of that name.
     :param actor_steps: actor gradient steps per critic step.
     :param target_entropy_ratio: the target entropy is ``target_entropy_ratio * log(n_actions)``.
     :param alpha_init: initial temperature, or ``"auto"``: 0.1 times the standard deviation of the
@@ -87,6 +96,7 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
         actor_loss: str = "boltzmann",
         alpha_entropy: str = "boltzmann",
         behaviour_policy: str = "actor",
+        critic_target: str = "actor",
         actor_steps: int = 1,
         target_entropy_ratio: float = 0.2,
         alpha_init: float | str = 0.1,
@@ -110,6 +120,7 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
         if not isinstance(actor_steps, int) or actor_steps < 1:
             raise ValueError(f"actor_steps must be a positive integer, got {actor_steps!r}.")
         policy_kwargs = with_behaviour_policy(policy_kwargs, behaviour_policy, "DiscreteSAC")
+        check_critic_target(critic_target)
         super().__init__(
             policy,
             check_discrete_env(env, "DiscreteSAC", verbose),
@@ -139,6 +150,7 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
         self.actor_loss = actor_loss
         self.alpha_entropy = alpha_entropy
         self.behaviour_policy = behaviour_policy
+        self.critic_target = critic_target
         self.actor_steps = actor_steps
         self._set_temperature_options(
             target_entropy_ratio,
@@ -168,7 +180,7 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
             alpha = policy.temperature.per_agent(None)
             with th.no_grad():
                 next_q = critic_minimum([target(data.next_observations) for target in policy.critic_targets])
-                next_value = self._next_value(next_q, policy.actor(data.next_observations), alpha)
+                next_value = self._next_value(next_q, partial(policy.actor, data.next_observations), alpha)
                 target_q = bootstrapped(batch.rewards, batch.discounts, batch.terminated, next_value)
             self._sac_step(
                 [critic(data.observations) for critic in policy.critics],

@@ -11,7 +11,12 @@ from stable_baselines3.common.type_aliases import GymEnv, Schedule
 
 from sb3_hgrn.common.buffers import GraphSamples
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm, check_added_arguments, unroll
-from sb3_hgrn.common.soft_actor_critic import SACFigures, SoftActorCritic, with_behaviour_policy
+from sb3_hgrn.common.soft_actor_critic import (
+    SACFigures,
+    SoftActorCritic,
+    check_critic_target,
+    with_behaviour_policy,
+)
 from sb3_hgrn.common.soft_math import (
     ACTOR_LOSSES,
     ALPHA_ENTROPIES,
@@ -74,6 +79,11 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         stays 0.4 to 2 nats above the Boltzmann policy's on the suite of docs/results_defaults.md);
         collecting with it scored 542 against 1,670 on UAV-MBS there.
 
+    :param critic_target: the policy the critics' targets average over at the next observations:
+        ``"actor"`` (discrete SAC's exact soft expectation over the actor's policy) or
+        ``"boltzmann"`` (over ``softmax(min_i Q_target_i / alpha)``: the soft value of soft
+        Q-learning, taken of the target critics' minimum; the actor then only acts where
+        ``behaviour_policy="actor"``).
     :param actor_steps: actor gradient steps on each batch, after its one critic step: more let the
         actor keep up with a critic that moves fast (docs/results.md).
     :param policy_kwargs: network options for both networks, plus ``n_critics``, ``actor_kwargs``,
@@ -110,6 +120,7 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         actor_loss: str = "boltzmann",
         alpha_entropy: str = "boltzmann",
         behaviour_policy: str = "critic",
+        critic_target: str = "actor",
         actor_steps: int = 1,
         exploration_fraction: float = 0.1,
         exploration_initial_eps: float | None = None,
@@ -130,6 +141,7 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         if alpha_entropy not in ALPHA_ENTROPIES:
             raise ValueError(f"alpha_entropy must be one of {ALPHA_ENTROPIES}, got {alpha_entropy!r}.")
         policy_kwargs = with_behaviour_policy(policy_kwargs, behaviour_policy, "SACHGRN")
+        check_critic_target(critic_target)
         if actor_steps < 1:
             raise ValueError(f"actor_steps must be an integer >= 1, got {actor_steps!r}.")
         super().__init__(
@@ -169,6 +181,7 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         self.actor_loss = actor_loss
         self.alpha_entropy = alpha_entropy
         self.behaviour_policy = behaviour_policy
+        self.critic_target = critic_target
         self.actor_steps = int(actor_steps)
         if _init_setup_model:
             self._setup_model()
@@ -191,6 +204,11 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         samples from its stored state ``state`` (see :func:`~sb3_hgrn.common.off_policy.unroll`)."""
         return self.policy.logits(unroll(self.policy.actor, steps, graphs, state), groups)
 
+    def _next_actor_logits(self, batch: GraphSamples, graph: Any, state: th.Tensor) -> th.Tensor:
+        """The actor's logits ``(batch, n_agents, n_actions)`` at ``batch``'s next observations, from
+        its state ``state`` there."""
+        return self.policy.actor_logits(batch.next_observations, graph, state, batch.groups)[0]
+
     def train(self, gradient_steps: int, batch_size: int = 32) -> None:
         self._start_training()
         policy = self.policy
@@ -205,16 +223,17 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
             graphs = [policy.graph_batch(step.neighbors, step.groups) for step in steps]  # actor and critics
             with th.no_grad():
                 next_graph = policy.graph_batch(batch.next_neighbors, batch.groups)
-                next_logits, _ = policy.actor_logits(
-                    batch.next_observations, next_graph, next_actor_state, batch.groups
-                )
                 next_q = critic_minimum(
                     [
                         target(batch.next_observations, next_graph, state)[0]
                         for target, state in zip(policy.critic_targets, next_critic_states, strict=True)
                     ]
                 )
-                next_value = self._next_value(next_q, next_logits, alpha)
+                next_value = self._next_value(
+                    next_q,
+                    partial(self._next_actor_logits, batch, next_graph, next_actor_state),
+                    alpha,
+                )
                 target_q = batch.bootstrapped(next_value)
 
             q_values = [
