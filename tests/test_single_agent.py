@@ -13,6 +13,7 @@ from stable_baselines3.common.evaluation import evaluate_policy
 
 from sb3_hgrn import DiscreteSAC, SoftDQN
 from sb3_hgrn.cli import main
+from sb3_hgrn.common import single_agent
 from sb3_hgrn.common.soft_math import sac_next_value, soft_value
 from tests.toy_envs import prefer_action
 
@@ -131,6 +132,23 @@ def test_save_load_gives_identical_predictions(name, tmp_path):
         loaded.temperature.optimizer.state_dict()["state"].keys()
         == model.temperature.optimizer.state_dict()["state"].keys()
     )
+
+
+@pytest.mark.parametrize("name", ALGORITHMS)
+def test_adam_is_fused_by_default_and_models_saved_unfused_learn_on(name, tmp_path, monkeypatch):
+    assert ALGORITHMS[name]("MlpPolicy", "CartPole-v1", **SMALL).policy.optimizer_kwargs == {"fused": True}
+    with monkeypatch.context() as patch:  # a model saved before Adam was fused by default
+        patch.setattr(single_agent, "fused_by_default", lambda _, kwargs: dict(kwargs or {}))
+        earlier = ALGORITHMS[name]("MlpPolicy", "CartPole-v1", seed=1, **SMALL).learn(200)
+        assert earlier.policy.optimizer_kwargs == {}
+        earlier.save(tmp_path / "earlier.zip")
+    loaded = ALGORITHMS[name].load(tmp_path / "earlier.zip", env=gym.make("CartPole-v1"))
+    assert loaded.policy.optimizer_kwargs == {"fused": True}
+    before = [p.detach().clone() for p in loaded.policy.parameters()]
+    loaded.learn(200, reset_num_timesteps=False)
+    after = list(loaded.policy.parameters())
+    assert all(th.isfinite(p).all() for p in after)
+    assert any(not th.equal(b, a) for b, a in zip(before, after, strict=True))
 
 
 @pytest.mark.parametrize("name", ALGORITHMS)

@@ -65,6 +65,19 @@ def transitions(data: ReplayBufferSamples, gamma: float) -> Transitions:
     )
 
 
+def fused_by_default(
+    optimizer_class: type[th.optim.Optimizer], optimizer_kwargs: dict[str, Any] | None
+) -> dict[str, Any]:
+    """``optimizer_kwargs`` with ``fused=True`` added for ``Adam`` and ``AdamW`` when they name neither
+    ``fused`` nor ``foreach``."""
+    optimizer_kwargs = dict(optimizer_kwargs or {})
+    if optimizer_class in (th.optim.Adam, th.optim.AdamW) and not {"fused", "foreach"} & set(
+        optimizer_kwargs
+    ):
+        optimizer_kwargs["fused"] = True
+    return optimizer_kwargs
+
+
 class SoftDiscretePolicy(DQNPolicy):
     """Base of the single-agent soft policies: SB3's ``DQNPolicy`` (its Q-network builder,
     features extractors and options) with a learned temperature ``temperature`` and a stochastic
@@ -75,6 +88,9 @@ class SoftDiscretePolicy(DQNPolicy):
 
     :param alpha_log_space: learn ``log(alpha)`` instead of alpha.
     :param features_extractor_class: ``None`` for ``default_extractor``.
+    :param optimizer_kwargs: as SB3's; for ``Adam`` and ``AdamW`` they default to ``fused=True`` (one
+        kernel per step for all parameters) unless they name ``fused`` or ``foreach``: on these small
+        networks the per-parameter steps of SB3's default are a large share of a gradient step.
     """
 
     default_extractor: ClassVar[type[BaseFeaturesExtractor]] = FlattenExtractor
@@ -87,6 +103,8 @@ class SoftDiscretePolicy(DQNPolicy):
         lr_schedule: Schedule,
         features_extractor_class: type[BaseFeaturesExtractor] | None = None,
         alpha_log_space: bool = False,
+        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
+        optimizer_kwargs: dict[str, Any] | None = None,
         **kwargs: Any,
     ):
         super().__init__(
@@ -94,6 +112,8 @@ class SoftDiscretePolicy(DQNPolicy):
             action_space,
             lr_schedule,
             features_extractor_class=features_extractor_class or self.default_extractor,
+            optimizer_class=optimizer_class,
+            optimizer_kwargs=fused_by_default(optimizer_class, optimizer_kwargs),
             **kwargs,
         )
         self.alpha_log_space = alpha_log_space
