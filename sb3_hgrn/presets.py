@@ -23,9 +23,10 @@ OWN_GROUP = {"communication": "gat"}  # homogeneous attention: each agent group 
 BASELINE_Q = dict(stochastic=False, reward_scale=1.0)
 """The Q-learning baselines: greedy, hard-max targets on the env's own rewards (no scaling)."""
 
-PAPER_ACTOR_CRITIC = dict(behaviour_policy="actor", reward_scale=1.0)
-"""SACHGRN as the paper runs it: the actor collects and is deployed, on the env's own rewards (the
-library's SACHGRN defaults collect and deploy with the critic's Boltzmann policy on scaled rewards)."""
+PAPER_ACTOR_CRITIC = dict(behaviour_policy="actor", critic_target="actor", reward_scale=1.0)
+"""SACHGRN as the paper runs it: the actor collects and is deployed, and the critics bootstrap on its
+policy, on the env's own rewards (the library's SACHGRN defaults collect, deploy and bootstrap with
+the critic's Boltzmann policy on scaled rewards)."""
 
 PRESETS: dict[str, tuple[type[GraphOffPolicyAlgorithm], dict[str, Any]]] = {
     # baselines

@@ -52,7 +52,8 @@ def test_presets_configure_the_ablations():
     # SAC-HGRN collects with its critic's Boltzmann policy and 30 % random actions; MAAC as the paper
     sac = make_model("sac_hgrn", env)
     assert sac.behaviour_policy == "critic" and sac.exploration_rate == 0.3 and sac.alpha_max_step == 0.05
-    assert maac.behaviour_policy == "actor" and maac.exploration_rate == 0.0
+    assert sac.critic_target == "boltzmann"
+    assert maac.behaviour_policy == "actor" and maac.exploration_rate == 0.0 and maac.critic_target == "actor"
 
 
 def test_paper_presets_use_the_paper_size_and_schedule():
@@ -62,6 +63,7 @@ def test_paper_presets_use_the_paper_size_and_schedule():
     assert kwargs["buffer_size"] == 50_000 * 100 and kwargs["tau"] == 1.0 and kwargs["reward_scale"] == 1.0
     _, sac_kwargs = preset_kwargs("sac_hgrn", paper=True)
     assert sac_kwargs["behaviour_policy"] == "actor" and sac_kwargs["reward_scale"] == 1.0
+    assert sac_kwargs["critic_target"] == "actor"
     _, kwargs = preset_kwargs("maac", paper=True)
     assert kwargs["policy_kwargs"]["hidden_dim"] == 256 and kwargs["tau"] == 0.01
     assert (kwargs["exploration_initial_eps"], kwargs["exploration_final_eps"]) == (0.9, 0.3)

@@ -43,6 +43,11 @@ def test_boltzmann_critic_targets_train_without_the_actors_next_logits(tmp_path,
     monkeypatch.undo()
     model.save(tmp_path / "model")
     assert SACHGRN.load(tmp_path / "model").critic_target == "boltzmann"
+    del model.critic_target  # a model saved before the option existed trained on the actor's targets
+    assert "critic_target" not in vars(model)
+    model.save(tmp_path / "earlier")
+    assert SACHGRN.load(tmp_path / "earlier").critic_target == "actor"
+    assert SACHGRN.load(tmp_path / "earlier", critic_target="boltzmann").critic_target == "boltzmann"
 
 
 def test_state_holds_actor_and_critic_memories():
@@ -59,7 +64,7 @@ def test_state_holds_actor_and_critic_memories():
 
 
 def test_exact_soft_value_and_greedy_value():
-    model = quick_model(bit_vec_env(n_envs=1))
+    model = quick_model(bit_vec_env(n_envs=1), critic_target="actor")
     next_q = th.tensor([[[1.0, 3.0]]])
     logits = th.log(th.tensor([[[0.25, 0.75]]]))
     alpha = th.tensor(0.5)

@@ -291,6 +291,9 @@ class GraphOffPolicyAlgorithm(AlgorithmNamedRuns, TemperatureLearner, OffPolicyA
     """The ``reward_scale`` argument (models saved before it existed load with 1.0, as they trained)."""
     applied_reward_scale: float = 1.0
     """The factor the targets apply to the rewards (``"auto"``'s is measured at the first update)."""
+    defaults_before_saved: ClassVar[dict[str, Any]] = {}
+    """Attributes whose default changed after models were saved without them, with the value such a
+    model trained with: :meth:`load` gives it that value instead of today's default."""
 
     def __init__(
         self,
@@ -541,6 +544,10 @@ class GraphOffPolicyAlgorithm(AlgorithmNamedRuns, TemperatureLearner, OffPolicyA
             given = custom_objects or {}
             custom_objects = {**saved_entries(source, name, cls._loadable_classes(), skip=given), **given}
         model = super().load(source, None, device, custom_objects, print_system_info, force_reset, **kwargs)
+        saved = saved_data(source).keys() | kwargs.keys()
+        for name, value in cls.defaults_before_saved.items():
+            if name not in saved:
+                setattr(model, name, value)
         if env is not None:
             model.set_env(env, force_reset=force_reset)
         return model

@@ -71,9 +71,8 @@ def fused_by_default(
     """``optimizer_kwargs`` with ``fused=True`` added for ``Adam`` and ``AdamW`` when they name neither
     ``fused`` nor ``foreach``."""
     optimizer_kwargs = dict(optimizer_kwargs or {})
-    if optimizer_class in (th.optim.Adam, th.optim.AdamW) and not {"fused", "foreach"} & set(
-        optimizer_kwargs
-    ):
+    named = {"fused", "foreach"} & set(optimizer_kwargs)
+    if optimizer_class in (th.optim.Adam, th.optim.AdamW) and not named:
         optimizer_kwargs["fused"] = True
     return optimizer_kwargs
 

@@ -29,9 +29,11 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
     """SAC-HGRN (discrete soft actor-critic with HGRN actor and critics, Ye et al., AAAI 2022).
 
     Critic target: ``r + gamma * (1 - terminated) * sum_a pi(a|o') (Q_target(o', a) - alpha log pi(a|o'))``
-    (the minimum over critics when there are several; with ``n_steps > 1`` the discounted sum of
-    ``n_steps`` rewards and ``gamma ** n_steps``, as in SoftHGRN). Every actor loss has the same
-    minimiser, the Boltzmann policy ``softmax(Q(o, .) / alpha)``:
+    with ``Q_target`` the minimum over critics when there are several and ``pi`` the Boltzmann policy
+    ``softmax(Q_target(o', .) / alpha)`` (``critic_target="boltzmann"``, so the sum is the soft value
+    ``alpha * logsumexp(Q_target(o', .) / alpha)``) or the actor's (``"actor"``, the paper's); with
+    ``n_steps > 1`` the discounted sum of ``n_steps`` rewards and ``gamma ** n_steps``, as in
+    SoftHGRN. Every actor loss has the same minimiser, the Boltzmann policy ``softmax(Q(o, .) / alpha)``:
 
     - ``"boltzmann"`` (default): ``KL(softmax(Q(o, .) / alpha) || pi(.|o))``, whose gradient on the
       logits is ``pi - softmax(Q / alpha)`` (see :func:`boltzmann_divergence`);
@@ -61,8 +63,9 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
 
     Defaults (``reward_scale="auto"``, ``alpha_learning_rate=1e-2``, ``alpha_max_step=0.05``,
     collecting with 30 % uniform random actions per agent and with the critic's policy) are
-    SoftHGRN's, chosen on a suite of eight envs (docs/results_defaults.md, "SAC-HGRN's defaults");
-    ``make_model(..., paper=True)`` and the ``maac`` preset keep the paper's.
+    SoftHGRN's, and the critics bootstrap on their own Boltzmann policy; both were chosen on a suite
+    of eight envs (docs/results_defaults.md, "SAC-HGRN's defaults"). ``make_model(..., paper=True)``
+    and the ``maac`` preset keep the paper's.
 
     :param actor_loss: ``"boltzmann"``, ``"standard"`` or ``"policy_gradient"``.
     :param alpha_entropy: the entropy alpha steers toward the target: ``"boltzmann"`` (that of the
@@ -80,10 +83,13 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         collecting with it scored 542 against 1,670 on UAV-MBS there.
 
     :param critic_target: the policy the critics' targets average over at the next observations:
-        ``"actor"`` (discrete SAC's exact soft expectation over the actor's policy) or
-        ``"boltzmann"`` (over ``softmax(min_i Q_target_i / alpha)``: the soft value of soft
-        Q-learning, taken of the target critics' minimum; the actor then only acts where
-        ``behaviour_policy="actor"``).
+        ``"boltzmann"`` (the default: ``softmax(min_i Q_target_i / alpha)``, whose soft expectation
+        is the soft value of soft Q-learning, taken of the target critics' minimum) or ``"actor"``
+        (discrete SAC's exact soft expectation over the actor's policy, as in the paper). The actor
+        lags its critic, so with ``"actor"`` the critics value a more random policy than the one
+        that collects: on MAgent2 battle they valued attacks so little that the saved models
+        scored 8 against 59 with ``"boltzmann"`` (docs/results_defaults.md). Models saved before
+        this option existed load with ``"actor"``, as they trained.
     :param actor_steps: actor gradient steps on each batch, after its one critic step: more let the
         actor keep up with a critic that moves fast (docs/results.md).
     :param policy_kwargs: network options for both networks, plus ``n_critics``, ``actor_kwargs``,
@@ -93,6 +99,7 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"GraphPolicy": SACHGRNPolicy}
     policy: SACHGRNPolicy
+    defaults_before_saved: ClassVar[dict[str, Any]] = {"critic_target": "actor"}
 
     def __init__(
         self,
@@ -120,7 +127,7 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         actor_loss: str = "boltzmann",
         alpha_entropy: str = "boltzmann",
         behaviour_policy: str = "critic",
-        critic_target: str = "actor",
+        critic_target: str = "boltzmann",
         actor_steps: int = 1,
         exploration_fraction: float = 0.1,
         exploration_initial_eps: float | None = None,
