@@ -16,6 +16,7 @@ from sb3_hgrn import (
     evaluate_graph_policy,
     make_graph_vec_env,
 )
+from sb3_hgrn.common import policies as graph_policies
 from sb3_hgrn.common.soft_math import soft_value
 from tests.doc_snippets import docstring_example, python_block, run_snippet
 from tests.toy_envs import DictOnlyEnv, NeighborBitEnv, check_deployed_average
@@ -272,6 +273,34 @@ def test_load_keeps_the_seeds_of_the_env_it_is_given(tmp_path, algorithm):
     assert returns(1, load=True) != returns(2, load=True)
     assert returns(1, load=True) == returns(1, load=False)
     assert returns(2, load=True) == returns(2, load=False)
+
+
+@pytest.mark.parametrize("algorithm", [SoftHGRN, SACHGRN])
+def test_adam_is_fused_by_default_and_models_saved_unfused_learn_on(tmp_path, monkeypatch, algorithm):
+    def optimizers(model):
+        policy = model.policy
+        if algorithm is SoftHGRN:
+            return [policy.optimizer]
+        return [policy.actor_optimizer, policy.critic_optimizer]
+
+    options = dict(learning_starts=32, batch_size=4, train_freq=1, policy_kwargs=SMALL)
+    model = algorithm("GraphPolicy", bit_env(n_envs=2), seed=0, **options)
+    assert model.policy.optimizer_kwargs == {"fused": True}
+    assert all(optimizer.defaults["fused"] for optimizer in optimizers(model))
+    given = algorithm("GraphPolicy", bit_env(n_envs=2), **{**options, "policy_kwargs": {
+        **SMALL, "optimizer_kwargs": {"foreach": False}}})  # fmt: skip
+    assert given.policy.optimizer_kwargs == {"foreach": False}
+    with monkeypatch.context() as patch:  # a model saved before Adam was fused by default
+        patch.setattr(graph_policies, "fused_by_default", lambda _, kwargs: dict(kwargs or {}))
+        earlier = algorithm("GraphPolicy", bit_env(n_envs=2), seed=1, **options).learn(80)
+        assert not any(optimizer.defaults["fused"] for optimizer in optimizers(earlier))
+        earlier.save(tmp_path / "earlier.zip")
+    loaded = algorithm.load(tmp_path / "earlier.zip", env=bit_env(n_envs=2))
+    before = [p.detach().clone() for p in loaded.policy.parameters()]
+    loaded.learn(80, reset_num_timesteps=False)
+    after = list(loaded.policy.parameters())
+    assert all(th.isfinite(p).all() for p in after)
+    assert any(not th.equal(b, a) for b, a in zip(before, after, strict=True))
 
 
 def test_random_graph_policy_examples_run_as_documented():

@@ -17,6 +17,7 @@ from sb3_hgrn.common.attention import GraphBatch
 from sb3_hgrn.common.averaging import polyak_average
 from sb3_hgrn.common.checks import check_graph_batch, check_state, observation_problem, slot_name
 from sb3_hgrn.common.hgrn import HGRN
+from sb3_hgrn.common.optimizers import fused_by_default
 from sb3_hgrn.common.temperature import EntropyTemperature
 from sb3_hgrn.validation import is_number
 
@@ -127,6 +128,10 @@ class GraphPolicy(BasePolicy):
         the input of every HGRN (see :class:`~sb3_hgrn.common.hgrn.HGRN`). ``None``: the flattened
         observation.
     :param features_extractor_kwargs: keyword arguments of ``features_extractor_class``.
+    :param optimizer_class: optimiser of the networks (SB3's option).
+    :param optimizer_kwargs: its keyword arguments; for ``Adam`` and ``AdamW`` they default to
+        ``fused=True`` unless they name ``fused`` or ``foreach``
+        (:func:`~sb3_hgrn.common.optimizers.fused_by_default`).
     :param average_tau: keep a Polyak average of the acting network's weights (the Q-network, or the
         actor), updated after every gradient step (:meth:`update_average`; about the last tenth of
         the updates, at most the last ``1 / average_tau``: see
@@ -171,7 +176,7 @@ class GraphPolicy(BasePolicy):
             observation_space,
             action_space,
             optimizer_class=optimizer_class,
-            optimizer_kwargs=optimizer_kwargs,
+            optimizer_kwargs=fused_by_default(optimizer_class, optimizer_kwargs),
             normalize_images=False,
         )
         if average_tau is not None and not (is_number(average_tau) and 0 < average_tau <= 1):

@@ -18,6 +18,7 @@ from stable_baselines3.common.torch_layers import (
 from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, ReplayBufferSamples, Schedule
 from stable_baselines3.dqn.policies import DQNPolicy
 
+from sb3_hgrn.common.optimizers import fused_by_default
 from sb3_hgrn.common.soft_math import sample_actions
 from sb3_hgrn.common.temperature import EntropyTemperature
 
@@ -63,18 +64,6 @@ def transitions(data: ReplayBufferSamples, gamma: float) -> Transitions:
     return Transitions(
         rewards, data.dones.reshape(-1), discounts, data.actions.long().reshape(-1, 1), th.ones_like(rewards)
     )
-
-
-def fused_by_default(
-    optimizer_class: type[th.optim.Optimizer], optimizer_kwargs: dict[str, Any] | None
-) -> dict[str, Any]:
-    """``optimizer_kwargs`` with ``fused=True`` added for ``Adam`` and ``AdamW`` when they name neither
-    ``fused`` nor ``foreach``."""
-    optimizer_kwargs = dict(optimizer_kwargs or {})
-    named = {"fused", "foreach"} & set(optimizer_kwargs)
-    if optimizer_class in (th.optim.Adam, th.optim.AdamW) and not named:
-        optimizer_kwargs["fused"] = True
-    return optimizer_kwargs
 
 
 class SoftDiscretePolicy(DQNPolicy):
