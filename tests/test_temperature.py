@@ -227,6 +227,21 @@ def test_alpha_max_step_bounds_every_update_of_the_algorithms(algorithm, tmp_pat
 
 
 @pytest.mark.parametrize("algorithm", [SoftHGRN, SACHGRN])
+def test_a_model_saved_before_reward_scale_existed_loads_with_the_scale_it_trained_with(algorithm, tmp_path):
+    from sb3_hgrn import make_graph_vec_env
+
+    env = make_graph_vec_env(large_rewards_tag_env, n_envs=2, seed=0)
+    model = algorithm("GraphPolicy", env, seed=0, policy_kwargs=dict(hidden_dim=8, n_heads=1))
+    assert model.reward_scale == "auto"  # today's default
+    model.save(tmp_path / "model")
+    assert algorithm.load(tmp_path / "model").reward_scale == "auto"
+    del model.reward_scale
+    model.save(tmp_path / "earlier")  # as the models saved before the option: the env's own rewards
+    assert algorithm.load(tmp_path / "earlier").reward_scale == 1.0
+    assert algorithm.load(tmp_path / "earlier", reward_scale=2.0).reward_scale == 2.0
+
+
+@pytest.mark.parametrize("algorithm", [SoftHGRN, SACHGRN])
 def test_auto_reward_scale_is_measured_once_and_scales_every_target(algorithm, tmp_path):
     """``reward_scale="auto"`` becomes one over the stored returns' root mean square at the first
     gradient step (1 where that is below 1), a resumed model keeps it, and the targets' rewards are

@@ -287,13 +287,14 @@ class GraphOffPolicyAlgorithm(AlgorithmNamedRuns, TemperatureLearner, OffPolicyA
     """Epsilon of a stochastic policy when ``exploration_initial_eps``/``_final_eps`` are ``None``: 30 %
     of each agent's actions uniform while collecting, the level of the original code's test mode
     (docs/results_defaults.md)."""
-    reward_scale: float | str = 1.0
-    """The ``reward_scale`` argument (models saved before it existed load with 1.0, as they trained)."""
+    reward_scale: float | str
+    """The ``reward_scale`` argument."""
     applied_reward_scale: float = 1.0
     """The factor the targets apply to the rewards (``"auto"``'s is measured at the first update)."""
-    defaults_before_saved: ClassVar[dict[str, Any]] = {}
+    defaults_before_saved: ClassVar[dict[str, Any]] = {"reward_scale": 1.0}
     """Attributes whose default changed after models were saved without them, with the value such a
-    model trained with: :meth:`load` gives it that value instead of today's default."""
+    model trained with: :meth:`load` gives it that value instead of today's default (models saved
+    before ``reward_scale`` existed trained on the env's own rewards)."""
 
     def __init__(
         self,

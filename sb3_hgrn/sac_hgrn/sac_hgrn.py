@@ -99,7 +99,10 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"GraphPolicy": SACHGRNPolicy}
     policy: SACHGRNPolicy
-    defaults_before_saved: ClassVar[dict[str, Any]] = {"critic_target": "actor"}
+    defaults_before_saved: ClassVar[dict[str, Any]] = {
+        **GraphOffPolicyAlgorithm.defaults_before_saved,
+        "critic_target": "actor",
+    }
 
     def __init__(
         self,
