@@ -50,6 +50,17 @@ def test_boltzmann_critic_targets_train_without_the_actors_next_logits(tmp_path,
     assert SACHGRN.load(tmp_path / "earlier", critic_target="boltzmann").critic_target == "boltzmann"
 
 
+def test_a_model_saved_before_the_behaviour_and_entropy_options_loads_with_what_it_trained_with(tmp_path):
+    model = quick_model(bit_vec_env(), behaviour_policy="actor", alpha_entropy="actor").learn(100)
+    del model.behaviour_policy, model.alpha_entropy  # the options of later versions
+    del model.policy_kwargs["behaviour_policy"]
+    model.save(tmp_path / "earlier")
+    loaded = SACHGRN.load(tmp_path / "earlier")
+    assert (loaded.behaviour_policy, loaded.alpha_entropy) == ("actor", "actor")
+    assert loaded.policy.behaviour_policy == "actor"
+    assert loaded.policy.deployed_label == model.policy.deployed_label
+
+
 def test_state_holds_actor_and_critic_memories():
     env = bit_vec_env(n_envs=2)
     model = quick_model(env, policy_kwargs=dict(hidden_dim=16, n_critics=2))

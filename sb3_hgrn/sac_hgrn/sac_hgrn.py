@@ -80,8 +80,9 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         policy as collecting (with ``average_tau``, that of the network's average), so that the saved
         model is the policy its training returns describe. The actor lags its critic (its entropy
         stays 0.4 to 2 nats above the Boltzmann policy's on the suite of docs/results_defaults.md);
-        collecting with it scored 542 against 1,670 on UAV-MBS there.
-
+        collecting with it scored 542 against 1,670 on UAV-MBS there. Models saved before this
+        option existed load with ``"actor"``, as they trained; so do those saved before
+        ``alpha_entropy`` for that option.
     :param critic_target: the policy the critics' targets average over at the next observations:
         ``"boltzmann"`` (the default: ``softmax(min_i Q_target_i / alpha)``, whose soft expectation
         is the soft value of soft Q-learning, taken of the target critics' minimum) or ``"actor"``
@@ -101,6 +102,8 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
     policy: SACHGRNPolicy
     defaults_before_saved: ClassVar[dict[str, Any]] = {
         **GraphOffPolicyAlgorithm.defaults_before_saved,
+        "alpha_entropy": "actor",
+        "behaviour_policy": "actor",
         "critic_target": "actor",
     }
 
