@@ -151,6 +151,13 @@ def test_adam_is_fused_by_default_and_models_saved_unfused_learn_on(name, tmp_pa
     assert any(not th.equal(b, a) for b, a in zip(before, after, strict=True))
 
 
+def test_discrete_sac_load_refuses_a_behaviour_policy_the_saved_policy_does_not_act_with(tmp_path):
+    DiscreteSAC("MlpPolicy", "CartPole-v1", **SMALL).save(tmp_path / "model")
+    assert DiscreteSAC.load(tmp_path / "model", behaviour_policy="actor").policy.behaviour_policy == "actor"
+    with pytest.raises(ValueError, match="acts with behaviour_policy='actor'; load cannot change it"):
+        DiscreteSAC.load(tmp_path / "model", behaviour_policy="critic")
+
+
 @pytest.mark.parametrize("name", ALGORITHMS)
 @pytest.mark.parametrize(
     "policy, make_env",
