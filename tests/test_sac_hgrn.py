@@ -64,8 +64,10 @@ def test_a_model_saved_before_the_behaviour_and_entropy_options_loads_with_what_
 def test_load_refuses_a_behaviour_policy_the_saved_policy_does_not_act_with(tmp_path):
     quick_model(bit_vec_env(), behaviour_policy="critic").save(tmp_path / "model")
     assert SACHGRN.load(tmp_path / "model", behaviour_policy="critic").policy.behaviour_policy == "critic"
-    with pytest.raises(ValueError, match="acts with behaviour_policy='critic'; load cannot change it"):
+    with pytest.raises(ValueError, match="built with behaviour_policy='critic'; load cannot change it"):
         SACHGRN.load(tmp_path / "model", behaviour_policy="actor")
+    with pytest.raises(ValueError, match="built with stochastic=True; load cannot change it to False"):
+        SACHGRN.load(tmp_path / "model", stochastic=False)
 
 
 def test_state_holds_actor_and_critic_memories():

@@ -154,7 +154,7 @@ def test_adam_is_fused_by_default_and_models_saved_unfused_learn_on(name, tmp_pa
 def test_discrete_sac_load_refuses_a_behaviour_policy_the_saved_policy_does_not_act_with(tmp_path):
     DiscreteSAC("MlpPolicy", "CartPole-v1", **SMALL).save(tmp_path / "model")
     assert DiscreteSAC.load(tmp_path / "model", behaviour_policy="actor").policy.behaviour_policy == "actor"
-    with pytest.raises(ValueError, match="acts with behaviour_policy='actor'; load cannot change it"):
+    with pytest.raises(ValueError, match="built with behaviour_policy='actor'; load cannot change it"):
         DiscreteSAC.load(tmp_path / "model", behaviour_policy="critic")
 
 

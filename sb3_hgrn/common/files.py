@@ -223,3 +223,16 @@ def describe_saved_model(source: ZipSource) -> str:
     if algorithm and algorithm != "common":
         return f"{package}'s {algorithm.upper()}{policy}"
     return f"{package}{policy}, policy module {module}"
+
+
+def check_policy_settings(model: Any, names: Sequence[str]) -> None:
+    """Raise a ``ValueError`` when a just loaded ``model`` holds one of the algorithm arguments
+    ``names`` with another value than its policy, which was rebuilt from the saved settings: such an
+    argument given to ``load`` would rename the policy while the saved one kept acting."""
+    for name in names:
+        given, built = getattr(model, name), getattr(model.policy, name)
+        if given != built:
+            raise ValueError(
+                f"This model's policy was built with {name}={built!r}; load cannot change it to "
+                f"{given!r}. Build a new model with {name}={given!r} instead."
+            )

@@ -36,6 +36,7 @@ from sb3_hgrn.common.files import (
     ModelFileError,
     ZipSource,
     check_model_file,
+    check_policy_settings,
     describe_saved_model,
     saved_data,
     saved_policy_module,
@@ -295,6 +296,8 @@ class GraphOffPolicyAlgorithm(AlgorithmNamedRuns, TemperatureLearner, OffPolicyA
     """Attributes whose default changed after models were saved without them, with the value such a
     model trained with: :meth:`load` gives it that value instead of today's default (models saved
     before ``reward_scale`` existed trained on the env's own rewards)."""
+    policy_settings: ClassVar[tuple[str, ...]] = ("stochastic",)
+    """Arguments the policy is built with too: :meth:`load` refuses values other than the saved ones."""
 
     def __init__(
         self,
@@ -531,7 +534,8 @@ class GraphOffPolicyAlgorithm(AlgorithmNamedRuns, TemperatureLearner, OffPolicyA
         :raises ~sb3_hgrn.common.files.DamagedModelFileError: for a damaged zip (cut short, not a
             zip, unreadable contents), naming the file.
         :raises ~sb3_hgrn.common.files.ModelFileError: for a zip of another library's algorithm.
-        :raises ValueError: for a zip of another sb3_hgrn algorithm, naming the class to load it with.
+        :raises ValueError: for a zip of another sb3_hgrn algorithm, naming the class to load it with,
+            and for a ``kwargs`` value of one of :attr:`policy_settings` other than the saved one.
 
         A given ``env`` keeps its own seeds: the model is loaded without it (SB3 would reseed it with
         the model's seed) and then attached with :meth:`set_env`.
@@ -549,6 +553,7 @@ class GraphOffPolicyAlgorithm(AlgorithmNamedRuns, TemperatureLearner, OffPolicyA
         for name, value in cls.defaults_before_saved.items():
             if name not in saved:
                 setattr(model, name, value)
+        check_policy_settings(model, cls.policy_settings)
         if env is not None:
             model.set_env(env, force_reset=force_reset)
         return model

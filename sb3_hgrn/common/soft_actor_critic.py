@@ -67,13 +67,12 @@ class SoftActorCritic(TemperatureLearner):
 
     The algorithm provides ``policy`` (``actor``, ``critics``, ``critic_targets``,
     ``actor_optimizer``, ``critic_optimizer`` and what :class:`TemperatureLearner` needs), the
-    options ``behaviour_policy`` (also the policy's), ``actor_loss``, ``alpha_entropy``,
+    options ``actor_loss``, ``alpha_entropy``,
     ``critic_target``, ``actor_steps``, ``stochastic``, ``max_grad_norm``, ``tau`` and
     ``target_update_interval`` (gradient steps), and SB3's ``_n_updates``.
     """
 
     policy: Any
-    behaviour_policy: str
     actor_loss: str
     alpha_entropy: str
     critic_target: str
@@ -83,20 +82,6 @@ class SoftActorCritic(TemperatureLearner):
     tau: float
     target_update_interval: int
     _n_updates: int
-
-    @classmethod
-    def load(cls, *args: Any, **kwargs: Any) -> Any:
-        """The algorithm's ``load``, refusing a ``behaviour_policy`` other than the one the saved
-        policy acts with: it is fixed when the model is built (the deployed average follows that
-        network), so a new one would only rename the policy the model keeps acting with."""
-        model = super().load(*args, **kwargs)
-        if model.behaviour_policy != model.policy.behaviour_policy:
-            raise ValueError(
-                f"This model's policy acts with behaviour_policy={model.policy.behaviour_policy!r}; "
-                f"load cannot change it to {model.behaviour_policy!r}. Build a new model with "
-                "that behaviour policy instead."
-            )
-        return model
 
     def _next_value(
         self, next_q: th.Tensor, next_logits: Callable[[], th.Tensor], alpha: th.Tensor

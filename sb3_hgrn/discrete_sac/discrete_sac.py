@@ -12,6 +12,7 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, Schedule
 
+from sb3_hgrn.common.files import check_policy_settings
 from sb3_hgrn.common.single_agent import TEMPERATURE_SAVE_PARAMS, check_discrete_env, transitions
 from sb3_hgrn.common.soft_actor_critic import (
     SACFigures,
@@ -193,6 +194,14 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
                 figures,
             )
         self._record_sac(figures)
+
+    @classmethod
+    def load(cls, *args: Any, **kwargs: Any) -> DiscreteSAC:
+        """SB3's ``load``, refusing a ``behaviour_policy`` other than the saved policy's (a
+        ``ValueError``): the policy is built with it, so a new one would not change how it acts."""
+        model = super().load(*args, **kwargs)
+        check_policy_settings(model, ["behaviour_policy"])
+        return model
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return ["policy", "policy.actor_optimizer", "policy.critic_optimizer", *TEMPERATURE_SAVE_PARAMS], []

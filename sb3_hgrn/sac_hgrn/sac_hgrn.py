@@ -106,6 +106,10 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         "behaviour_policy": "actor",
         "critic_target": "actor",
     }
+    policy_settings: ClassVar[tuple[str, ...]] = (
+        *GraphOffPolicyAlgorithm.policy_settings,
+        "behaviour_policy",
+    )
 
     def __init__(
         self,
