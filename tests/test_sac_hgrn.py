@@ -70,6 +70,21 @@ def test_load_refuses_a_behaviour_policy_the_saved_policy_does_not_act_with(tmp_
         SACHGRN.load(tmp_path / "model", stochastic=False)
 
 
+def test_without_actor_steps_the_critics_and_the_deployed_policy_train_exactly_as_with_them():
+    """With nothing reading the actor (the defaults), ``actor_steps=0`` changes no critic weight, no
+    alpha and no action; the actor alone stays as it was built."""
+    models = [quick_model(bit_vec_env(), actor_steps=steps).learn(240) for steps in (1, 0)]
+    trained, skipped = (model.policy for model in models)
+    assert models[0]._n_updates == models[1]._n_updates > 0
+    for network in ("critics", "critic_targets", "critic_average"):
+        ours, theirs = (getattr(policy, network).parameters() for policy in (trained, skipped))
+        assert all(th.equal(a, b) for a, b in zip(ours, theirs, strict=True))
+    assert th.equal(trained.temperature.alpha, skipped.temperature.alpha)
+    untouched = quick_model(bit_vec_env(), actor_steps=0).policy.actor.state_dict()
+    assert all(th.equal(value, untouched[name]) for name, value in skipped.actor.state_dict().items())
+    assert not all(th.equal(value, untouched[name]) for name, value in trained.actor.state_dict().items())
+
+
 def test_state_holds_actor_and_critic_memories():
     env = bit_vec_env(n_envs=2)
     model = quick_model(env, policy_kwargs=dict(hidden_dim=16, n_critics=2))
@@ -175,8 +190,12 @@ def test_bad_arguments():
         quick_model(bit_vec_env(n_envs=1), behaviour_policy="random")
     with pytest.raises(ValueError, match="critic_target must be one of"):
         quick_model(bit_vec_env(n_envs=1), critic_target="critic")
-    with pytest.raises(ValueError, match="actor_steps must be an integer >= 1, got 0"):
-        quick_model(bit_vec_env(n_envs=1), actor_steps=0)
+    with pytest.raises(ValueError, match="actor_steps must be an integer >= 0, got -1"):
+        quick_model(bit_vec_env(n_envs=1), actor_steps=-1)
+    for reader in (dict(behaviour_policy="actor"), dict(critic_target="actor"), dict(alpha_entropy="actor")):
+        ((name, value),) = reader.items()
+        with pytest.raises(ValueError, match=f"actor_steps=0 leaves the actor untrained, but {name}='actor'"):
+            quick_model(bit_vec_env(n_envs=1), actor_steps=0, **reader)
     with pytest.raises(
         ValueError, match="sequence_length must be a positive integer that divides batch_size=8"
     ):

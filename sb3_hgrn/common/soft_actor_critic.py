@@ -25,6 +25,7 @@ from sb3_hgrn.common.soft_math import (
     steered_entropy,
 )
 from sb3_hgrn.common.temperature import TemperatureLearner, categorical_entropy
+from sb3_hgrn.validation import is_integer
 
 
 def with_behaviour_policy(
@@ -42,6 +43,27 @@ def with_behaviour_policy(
             f"give {algorithm}'s behaviour_policy argument only."
         )
     return {**(policy_kwargs or {}), "behaviour_policy": behaviour_policy}
+
+
+def check_actor_steps(
+    actor_steps: int, behaviour_policy: str, critic_target: str, alpha_entropy: str
+) -> None:
+    """Raise a ``ValueError`` unless ``actor_steps`` is an integer >= 0, and unless, with 0 (the actor
+    never trained), nothing reads the actor: it must then neither collect (``behaviour_policy``), nor
+    give the targets (``critic_target``), nor the entropy alpha steers by (``alpha_entropy``)."""
+    if not is_integer(actor_steps) or actor_steps < 0:
+        raise ValueError(f"actor_steps must be an integer >= 0, got {actor_steps!r}.")
+    readers = {
+        "behaviour_policy": behaviour_policy,
+        "critic_target": critic_target,
+        "alpha_entropy": alpha_entropy,
+    }
+    reading = [f"{name}={value!r}" for name, value in readers.items() if value == "actor"]
+    if actor_steps == 0 and reading:
+        raise ValueError(
+            f"actor_steps=0 leaves the actor untrained, but {', '.join(reading)} reads it; use "
+            "behaviour_policy='critic', critic_target='boltzmann' and alpha_entropy='boltzmann' with it."
+        )
 
 
 def check_critic_target(critic_target: str) -> None:
@@ -117,8 +139,9 @@ class SoftActorCritic(TemperatureLearner):
         mask: th.Tensor,
         figures: SACFigures,
     ) -> None:
-        """One gradient step of the critics, ``actor_steps`` of the actor, one of alpha and, every
-        ``target_update_interval`` steps, the critic targets; the figures are added to ``figures``.
+        """One gradient step of the critics, ``actor_steps`` of the actor (none with 0: the actor is
+        then never run), one of alpha and, every ``target_update_interval`` steps, the critic
+        targets; the figures are added to ``figures``.
 
         :param q_values: every critic's Q-values ``(..., n_actions)`` (with their graph).
         :param actions: the taken actions ``(..., 1)`` (int64).
@@ -139,14 +162,15 @@ class SoftActorCritic(TemperatureLearner):
             gradient_step(policy.actor_optimizer, loss, policy.actor, self.max_grad_norm)
         self._after_actor_steps()
 
-        actor_entropy = categorical_entropy(logits.detach())
+        actor_entropy = categorical_entropy(logits.detach()) if self.actor_steps else None
         steered = steered_entropy(self.alpha_entropy, actor_entropy, min_q, alpha)
         entropy, alpha_gradient = self._update_temperature(steered, groups, mask)
-        figures.actor_entropies.append(masked_mean(actor_entropy, mask).item())
+        if self.actor_steps:
+            figures.actor_entropies.append(masked_mean(actor_entropy, mask).item())
+            figures.actor_losses.append(loss.item())
         if alpha_gradient is not None:
             figures.alpha_gradients.append(alpha_gradient)
         figures.critic_losses.append(critic_loss.item())
-        figures.actor_losses.append(loss.item())
         figures.entropies.append(entropy)
         self._n_updates += 1
         if self._n_updates % self.target_update_interval == 0:
@@ -156,6 +180,7 @@ class SoftActorCritic(TemperatureLearner):
         """Log the figures of a training round: losses, the actor's entropy and the temperature's."""
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/critic_loss", float(np.mean(figures.critic_losses)))
-        self.logger.record("train/actor_loss", float(np.mean(figures.actor_losses)))
-        self.logger.record("train/actor_entropy", float(np.mean(figures.actor_entropies)))
+        if figures.actor_losses:  # none with actor_steps=0
+            self.logger.record("train/actor_loss", float(np.mean(figures.actor_losses)))
+            self.logger.record("train/actor_entropy", float(np.mean(figures.actor_entropies)))
         self._record_temperature(figures.entropies, figures.alpha_gradients)

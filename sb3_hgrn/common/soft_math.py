@@ -151,7 +151,7 @@ def actor_loss(
 
 
 def steered_entropy(
-    alpha_entropy: str, actor_entropy: th.Tensor, q_values: th.Tensor, alpha: th.Tensor
+    alpha_entropy: str, actor_entropy: th.Tensor | None, q_values: th.Tensor, alpha: th.Tensor
 ) -> th.Tensor:
     """The entropy ``(...)`` a discrete-SAC temperature follows: the actor's own (``"actor"``) or that
     of the critic's Boltzmann policy ``softmax(Q / alpha)`` (``"boltzmann"``), the policy every actor

@@ -17,6 +17,7 @@ from sb3_hgrn.common.single_agent import TEMPERATURE_SAVE_PARAMS, check_discrete
 from sb3_hgrn.common.soft_actor_critic import (
     SACFigures,
     SoftActorCritic,
+    check_actor_steps,
     check_critic_target,
     with_behaviour_policy,
 )
@@ -56,7 +57,9 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
         over ``softmax(min_i Q_target_i(o', .) / alpha)`` instead of the actor's policy, which is the
         soft value ``alpha * logsumexp(min_i Q_target_i(o', .) / alpha)``, as :class:`~sb3_hgrn.SACHGRN`'s
         option of that name.
-    :param actor_steps: actor gradient steps per critic step.
+    :param actor_steps: actor gradient steps per critic step; 0 never trains the actor, where
+        nothing reads it (``behaviour_policy="critic"``, ``critic_target="boltzmann"`` and
+        ``alpha_entropy="boltzmann"``), as :class:`~sb3_hgrn.SACHGRN`'s option of that name.
     :param target_entropy_ratio: the target entropy is ``target_entropy_ratio * log(n_actions)``.
     :param alpha_init: initial temperature, or ``"auto"``: 0.1 times the standard deviation of the
         rewards stored at the first gradient step (see :mod:`sb3_hgrn.common.temperature`).
@@ -118,10 +121,9 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
             raise ValueError(f"actor_loss must be one of {ACTOR_LOSSES}, got {actor_loss!r}.")
         if alpha_entropy not in ALPHA_ENTROPIES:
             raise ValueError(f"alpha_entropy must be one of {ALPHA_ENTROPIES}, got {alpha_entropy!r}.")
-        if not isinstance(actor_steps, int) or actor_steps < 1:
-            raise ValueError(f"actor_steps must be a positive integer, got {actor_steps!r}.")
         policy_kwargs = with_behaviour_policy(policy_kwargs, behaviour_policy, "DiscreteSAC")
         check_critic_target(critic_target)
+        check_actor_steps(actor_steps, behaviour_policy, critic_target, alpha_entropy)
         super().__init__(
             policy,
             check_discrete_env(env, "DiscreteSAC", verbose),
@@ -152,7 +154,7 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
         self.alpha_entropy = alpha_entropy
         self.behaviour_policy = behaviour_policy
         self.critic_target = critic_target
-        self.actor_steps = actor_steps
+        self.actor_steps = int(actor_steps)
         self._set_temperature_options(
             target_entropy_ratio,
             alpha_init,

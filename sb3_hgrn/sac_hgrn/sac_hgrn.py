@@ -14,6 +14,7 @@ from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm, check_added_argu
 from sb3_hgrn.common.soft_actor_critic import (
     SACFigures,
     SoftActorCritic,
+    check_actor_steps,
     check_critic_target,
     with_behaviour_policy,
 )
@@ -92,7 +93,11 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         scored 8 against 59 with ``"boltzmann"`` (docs/results_defaults.md). Models saved before
         this option existed load with ``"actor"``, as they trained.
     :param actor_steps: actor gradient steps on each batch, after its one critic step: more let the
-        actor keep up with a critic that moves fast (docs/results.md).
+        actor keep up with a critic that moves fast (docs/results.md). 0 never runs the actor in
+        training, when nothing reads it (``behaviour_policy="critic"``, ``critic_target="boltzmann"``
+        and ``alpha_entropy="boltzmann"``, the defaults): the critics, alpha and the deployed policy
+        then train exactly as with 1, in about two thirds of the update time, and the saved actor
+        is untrained (docs/usage.md).
     :param policy_kwargs: network options for both networks, plus ``n_critics``, ``actor_kwargs``,
         ``critic_kwargs`` (options of one network only), ``tempered_actor`` and ``average_tau`` (a
         Polyak-averaged actor that ``predict`` acts with).
@@ -159,8 +164,7 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
             raise ValueError(f"alpha_entropy must be one of {ALPHA_ENTROPIES}, got {alpha_entropy!r}.")
         policy_kwargs = with_behaviour_policy(policy_kwargs, behaviour_policy, "SACHGRN")
         check_critic_target(critic_target)
-        if actor_steps < 1:
-            raise ValueError(f"actor_steps must be an integer >= 1, got {actor_steps!r}.")
+        check_actor_steps(actor_steps, behaviour_policy, critic_target, alpha_entropy)
         super().__init__(
             policy,
             env,
