@@ -70,7 +70,7 @@ def test_load_refuses_a_behaviour_policy_the_saved_policy_does_not_act_with(tmp_
         SACHGRN.load(tmp_path / "model", stochastic=False)
 
 
-def test_without_actor_steps_the_critics_and_the_deployed_policy_train_exactly_as_with_them():
+def test_without_actor_steps_the_critics_and_the_deployed_policy_train_exactly_as_with_them(tmp_path):
     """With nothing reading the actor (the defaults), ``actor_steps=0`` changes no critic weight, no
     alpha and no action; the actor alone stays as it was built."""
     models = [quick_model(bit_vec_env(), actor_steps=steps).learn(240) for steps in (1, 0)]
@@ -80,6 +80,11 @@ def test_without_actor_steps_the_critics_and_the_deployed_policy_train_exactly_a
         ours, theirs = (getattr(policy, network).parameters() for policy in (trained, skipped))
         assert all(th.equal(a, b) for a, b in zip(ours, theirs, strict=True))
     assert th.equal(trained.temperature.alpha, skipped.temperature.alpha)
+    models[1].save(tmp_path / "model")
+    with pytest.raises(
+        ValueError, match="actor_steps=0 leaves the actor untrained, but critic_target='actor'"
+    ):
+        SACHGRN.load(tmp_path / "model", critic_target="actor")
     untouched = quick_model(bit_vec_env(), actor_steps=0).policy.actor.state_dict()
     assert all(th.equal(value, untouched[name]) for name, value in skipped.actor.state_dict().items())
     assert not all(th.equal(value, untouched[name]) for name, value in trained.actor.state_dict().items())

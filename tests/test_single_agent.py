@@ -156,6 +156,12 @@ def test_discrete_sac_load_refuses_a_behaviour_policy_the_saved_policy_does_not_
     assert DiscreteSAC.load(tmp_path / "model", behaviour_policy="actor").policy.behaviour_policy == "actor"
     with pytest.raises(ValueError, match="built with behaviour_policy='actor'; load cannot change it"):
         DiscreteSAC.load(tmp_path / "model", behaviour_policy="critic")
+    options = dict(behaviour_policy="critic", critic_target="boltzmann", actor_steps=0)
+    DiscreteSAC("MlpPolicy", "CartPole-v1", **SMALL, **options).save(tmp_path / "no_actor")
+    with pytest.raises(
+        ValueError, match="actor_steps=0 leaves the actor untrained, but critic_target='actor'"
+    ):
+        DiscreteSAC.load(tmp_path / "no_actor", critic_target="actor")
 
 
 @pytest.mark.parametrize("name", ALGORITHMS)

@@ -89,12 +89,13 @@ class SoftActorCritic(TemperatureLearner):
 
     The algorithm provides ``policy`` (``actor``, ``critics``, ``critic_targets``,
     ``actor_optimizer``, ``critic_optimizer`` and what :class:`TemperatureLearner` needs), the
-    options ``actor_loss``, ``alpha_entropy``,
+    options ``behaviour_policy``, ``actor_loss``, ``alpha_entropy``,
     ``critic_target``, ``actor_steps``, ``stochastic``, ``max_grad_norm``, ``tau`` and
     ``target_update_interval`` (gradient steps), and SB3's ``_n_updates``.
     """
 
     policy: Any
+    behaviour_policy: str
     actor_loss: str
     alpha_entropy: str
     critic_target: str
@@ -104,6 +105,11 @@ class SoftActorCritic(TemperatureLearner):
     tau: float
     target_update_interval: int
     _n_updates: int
+
+    def _check_actor_readers(self) -> None:
+        """:func:`check_actor_steps` of the model's options, for a loaded model (``load``'s arguments
+        may set an option that reads an actor trained with ``actor_steps=0``, that is not at all)."""
+        check_actor_steps(self.actor_steps, self.behaviour_policy, self.critic_target, self.alpha_entropy)
 
     def _next_value(
         self, next_q: th.Tensor, next_logits: Callable[[], th.Tensor], alpha: th.Tensor

@@ -199,10 +199,12 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
 
     @classmethod
     def load(cls, *args: Any, **kwargs: Any) -> DiscreteSAC:
-        """SB3's ``load``, refusing a ``behaviour_policy`` other than the saved policy's (a
-        ``ValueError``): the policy is built with it, so a new one would not change how it acts."""
+        """SB3's ``load``, refusing (a ``ValueError``) a ``behaviour_policy`` other than the saved
+        policy's (the policy is built with it, so a new one would not change how it acts) and
+        options that read an actor trained with ``actor_steps=0``."""
         model = super().load(*args, **kwargs)
         check_policy_settings(model, ["behaviour_policy"])
+        model._check_actor_readers()
         return model
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:

@@ -215,6 +215,14 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
             return self.policy.critic_act(obs, hidden)
         return super()._behaviour_act(obs, hidden)
 
+    @classmethod
+    def load(cls, *args: Any, **kwargs: Any) -> SACHGRN:
+        """:meth:`GraphOffPolicyAlgorithm.load`, also refusing (a ``ValueError``) options that read an
+        actor trained with ``actor_steps=0``."""
+        model = super().load(*args, **kwargs)
+        model._check_actor_readers()
+        return model
+
     def _after_actor_steps(self) -> None:
         self.policy.update_average()
 
