@@ -1,4 +1,5 @@
-"""Crash-safe files: atomic writes, and checks of saved model zips before they are loaded.
+"""Crash-safe files: atomic writes, checks of saved model zips before they are loaded, and of the
+settings a loaded model's policy was rebuilt with (:func:`check_policy_settings`).
 
 A file written with :func:`atomic_write` goes to a temporary file in the same folder, is flushed to
 disk and then renamed over the target (``os.replace``), so a process killed at any moment leaves
