@@ -54,9 +54,12 @@ def networks(model) -> list[HGRN]:
 
 
 def trained_networks(model) -> list[HGRN]:
-    """The networks a gradient step updates (not the target copies)."""
+    """The networks a gradient step updates (not the target copies, nor an actor that never trains:
+    SACHGRN's at its defaults, ``actor_steps="auto"``)."""
     policy = model.policy
-    return [policy.q_net] if isinstance(model, SoftHGRN) else [policy.actor, *policy.critics]
+    if isinstance(model, SoftHGRN):
+        return [policy.q_net]
+    return [*([policy.actor] if model.actor_steps else []), *policy.critics]
 
 
 def extractor_parameters(network: HGRN) -> list[th.Tensor]:

@@ -6,7 +6,6 @@ import torch as th
 
 from sb3_hgrn import SACHGRN, evaluate_graph_policy
 from sb3_hgrn.common.temperature import categorical_entropy
-from sb3_hgrn.experiments.config import ConfigError, check_params
 from tests.toy_envs import bit_vec_env, check_deployed_average, costly_tag_env, prefer_action, train_on
 
 
@@ -43,10 +42,11 @@ def test_boltzmann_critic_targets_train_without_the_actors_next_logits(tmp_path,
     monkeypatch.undo()
     model.save(tmp_path / "model")
     assert SACHGRN.load(tmp_path / "model").critic_target == "boltzmann"
-    del model.critic_target  # a model saved before the option existed trained on the actor's targets
+    del model.critic_target, model.actor_steps  # a model saved before the options trained its actor
     assert "critic_target" not in vars(model)
     model.save(tmp_path / "earlier")
-    assert SACHGRN.load(tmp_path / "earlier").critic_target == "actor"
+    earlier = SACHGRN.load(tmp_path / "earlier")
+    assert (earlier.critic_target, earlier.actor_steps) == ("actor", 1)
     assert SACHGRN.load(tmp_path / "earlier", critic_target="boltzmann").critic_target == "boltzmann"
 
 
@@ -85,9 +85,26 @@ def test_without_actor_steps_the_critics_and_the_deployed_policy_train_exactly_a
         ValueError, match="actor_steps=0 leaves the actor untrained, but critic_target='actor'"
     ):
         SACHGRN.load(tmp_path / "model", critic_target="actor")
+    assert SACHGRN.load(tmp_path / "model", critic_target="actor", actor_steps="auto").actor_steps == 1
     untouched = quick_model(bit_vec_env(), actor_steps=0).policy.actor.state_dict()
     assert all(th.equal(value, untouched[name]) for name, value in skipped.actor.state_dict().items())
     assert not all(th.equal(value, untouched[name]) for name, value in trained.actor.state_dict().items())
+
+
+def test_auto_actor_steps_train_the_actor_only_where_something_reads_it(monkeypatch):
+    """``actor_steps="auto"`` (the default) is 0 at the defaults, where nothing reads the actor, and
+    the actor then runs neither in training nor in collection; each option that reads it makes it 1."""
+    assert quick_model(bit_vec_env(n_envs=1)).actor_steps == 0
+    for reader in (dict(behaviour_policy="actor"), dict(critic_target="actor"), dict(alpha_entropy="actor")):
+        assert quick_model(bit_vec_env(n_envs=1), **reader).actor_steps == 1
+    model = quick_model(bit_vec_env())
+    calls = []
+    monkeypatch.setattr(model.policy, "actor_logits", lambda *args: calls.append(args))
+    model.learn(200)
+    assert model._n_updates > 0 and calls == []
+    state = model.replay_buffer.hidden[: model.replay_buffer.pos]
+    actor_state = model.policy.split_state(th.as_tensor(state, dtype=th.float32))[0]
+    assert not actor_state.any()  # never advanced
 
 
 def test_state_holds_actor_and_critic_memories():
@@ -170,18 +187,14 @@ def test_save_load_round_trip(tmp_path):
     assert loaded.num_timesteps == model.num_timesteps + 120
 
 
-def test_logs_actor_and_critic_losses():
-    model = quick_model(bit_vec_env(n_envs=2))
-    model.learn(8 * 20)
-    logged = model.logger.name_to_value
-    for key in (
-        "train/actor_loss",
-        "train/critic_loss",
-        "train/alpha",
-        "train/entropy",
-        "train/target_entropy",
-    ):
-        assert key in logged
+def test_logs_the_critic_loss_and_the_actor_loss_where_the_actor_trains():
+    shared = ("train/critic_loss", "train/alpha", "train/entropy", "train/target_entropy")
+    for actor_steps, actor_keys in (("auto", set()), (1, {"train/actor_loss", "train/actor_entropy"})):
+        model = quick_model(bit_vec_env(n_envs=2), actor_steps=actor_steps)
+        model.learn(8 * 20)
+        logged = set(model.logger.name_to_value)
+        assert set(shared) <= logged
+        assert logged & {"train/actor_loss", "train/actor_entropy"} == actor_keys
 
 
 def test_bad_arguments():
@@ -195,8 +208,9 @@ def test_bad_arguments():
         quick_model(bit_vec_env(n_envs=1), behaviour_policy="random")
     with pytest.raises(ValueError, match="critic_target must be one of"):
         quick_model(bit_vec_env(n_envs=1), critic_target="critic")
-    with pytest.raises(ValueError, match="actor_steps must be an integer >= 0, got -1"):
-        quick_model(bit_vec_env(n_envs=1), actor_steps=-1)
+    for wrong in (-1, "4", 2.0, True):
+        with pytest.raises(ValueError, match=f"actor_steps must be an integer >= 0 or 'auto', got {wrong!r}"):
+            quick_model(bit_vec_env(n_envs=1), actor_steps=wrong)
     for reader in (dict(behaviour_policy="actor"), dict(critic_target="actor"), dict(alpha_entropy="actor")):
         ((name, value),) = reader.items()
         with pytest.raises(ValueError, match=f"actor_steps=0 leaves the actor untrained, but {name}='actor'"):
@@ -207,23 +221,10 @@ def test_bad_arguments():
         quick_model(bit_vec_env(n_envs=1), sequence_length=3)
 
 
-@pytest.mark.parametrize(
-    "kwargs, message",
-    [
-        ({"actor_steps": "4"}, "actor_steps must be an integer, got '4'"),
-        ({"actor_steps": 2.0}, "actor_steps must be an integer, got 2.0"),
-        ({"actor_steps": True}, "actor_steps must be an integer, got True"),
-        ({"_init_setup_model": "no"}, "_init_setup_model must be true or false, got 'no'"),
-    ],
-)
-def test_own_arguments_of_a_wrong_type_raise_as_in_a_config_file(kwargs, message):
-    """SACHGRN's own arguments are checked by the mechanism that checks the shared ones, from Python as
-    from a config file."""
-    with pytest.raises(TypeError, match=message):
-        quick_model(bit_vec_env(n_envs=1), **kwargs)
-    if "_init_setup_model" not in kwargs:  # set by the runner, never by a config file
-        with pytest.raises(ConfigError, match=message):
-            check_params("sac_hgrn", kwargs)
+def test_an_own_flag_of_a_wrong_type_raises_as_a_shared_one_does():
+    """SACHGRN's own arguments are checked by the mechanism that checks the shared ones."""
+    with pytest.raises(TypeError, match="_init_setup_model must be true or false, got 'no'"):
+        quick_model(bit_vec_env(n_envs=1), _init_setup_model="no")
 
 
 def test_a_numpy_integer_is_an_integer():

@@ -251,7 +251,7 @@ def test_rejects_action_spaces_other_than_discrete(name, env_class, kind):
     [
         (dict(actor_loss="mse"), "actor_loss must be one of"),
         (dict(alpha_entropy="critic"), "alpha_entropy must be one of"),
-        (dict(actor_steps=-1), "actor_steps must be an integer >= 0, got -1"),
+        (dict(actor_steps=-1), "actor_steps must be an integer >= 0 or .auto., got -1"),
         (dict(actor_steps=0), "actor_steps=0 leaves the actor untrained, but behaviour_policy='actor'"),
         (dict(policy_kwargs=dict(n_critics=0)), "n_critics must be a positive integer, got 0"),
         (dict(behaviour_policy="target"), "behaviour_policy must be one of"),

@@ -96,7 +96,7 @@ def test_packaged_search_spaces_load(optuna):
         space = load_search_space(preset)
         assert {"learning_rate", "batch_size", "gamma", "tau", "target_entropy_ratio"} <= set(space)
         assert space["learning_rate"].log
-    assert "actor_steps" in load_search_space("sac_hgrn")
+    assert "policy_kwargs.n_critics" in load_search_space("sac_hgrn")
 
 
 @pytest.mark.parametrize(

@@ -45,20 +45,41 @@ def with_behaviour_policy(
     return {**(policy_kwargs or {}), "behaviour_policy": behaviour_policy}
 
 
-def check_actor_steps(
-    actor_steps: int, behaviour_policy: str, critic_target: str, alpha_entropy: str
-) -> None:
-    """Raise a ``ValueError`` unless ``actor_steps`` is an integer >= 0, and unless, with 0 (the actor
-    never trained), nothing reads the actor: it must then neither collect (``behaviour_policy``), nor
-    give the targets (``critic_target``), nor the entropy alpha steers by (``alpha_entropy``)."""
-    if not is_integer(actor_steps) or actor_steps < 0:
-        raise ValueError(f"actor_steps must be an integer >= 0, got {actor_steps!r}.")
+AUTO_ACTOR_STEPS = "auto"
+"""``actor_steps="auto"``: 1 where something reads the actor, else 0 (:func:`resolve_actor_steps`)."""
+
+
+def actor_readers(behaviour_policy: str, critic_target: str, alpha_entropy: str) -> list[str]:
+    """The options (``"name='actor'"``) that read the actor: it collects (``behaviour_policy``), gives
+    the targets (``critic_target``) or the entropy alpha steers by (``alpha_entropy``)."""
     readers = {
         "behaviour_policy": behaviour_policy,
         "critic_target": critic_target,
         "alpha_entropy": alpha_entropy,
     }
-    reading = [f"{name}={value!r}" for name, value in readers.items() if value == "actor"]
+    return [f"{name}={value!r}" for name, value in readers.items() if value == "actor"]
+
+
+def resolve_actor_steps(
+    actor_steps: int | str, behaviour_policy: str, critic_target: str, alpha_entropy: str
+) -> int:
+    """``actor_steps`` as the number of actor steps per critic step: ``"auto"`` is 1 where an option
+    reads the actor (:func:`actor_readers`) and 0 where none does (training an actor nothing reads
+    changes nothing the model does); an integer is checked by :func:`check_actor_steps`."""
+    if actor_steps == AUTO_ACTOR_STEPS:
+        return 1 if actor_readers(behaviour_policy, critic_target, alpha_entropy) else 0
+    check_actor_steps(actor_steps, behaviour_policy, critic_target, alpha_entropy)
+    return int(actor_steps)
+
+
+def check_actor_steps(
+    actor_steps: int, behaviour_policy: str, critic_target: str, alpha_entropy: str
+) -> None:
+    """Raise a ``ValueError`` unless ``actor_steps`` is an integer >= 0, and unless, with 0 (the actor
+    never trained), nothing reads the actor (:func:`actor_readers`)."""
+    if not is_integer(actor_steps) or actor_steps < 0:
+        raise ValueError(f"actor_steps must be an integer >= 0 or {AUTO_ACTOR_STEPS!r}, got {actor_steps!r}.")
+    reading = actor_readers(behaviour_policy, critic_target, alpha_entropy)
     if actor_steps == 0 and reading:
         raise ValueError(
             f"actor_steps=0 leaves the actor untrained, but {', '.join(reading)} reads it; use "
@@ -106,10 +127,13 @@ class SoftActorCritic(TemperatureLearner):
     target_update_interval: int
     _n_updates: int
 
-    def _check_actor_readers(self) -> None:
-        """:func:`check_actor_steps` of the model's options, for a loaded model (``load``'s arguments
-        may set an option that reads an actor trained with ``actor_steps=0``, that is not at all)."""
-        check_actor_steps(self.actor_steps, self.behaviour_policy, self.critic_target, self.alpha_entropy)
+    def _resolve_loaded_actor_steps(self) -> None:
+        """:func:`resolve_actor_steps` of a loaded model's options (``load``'s arguments may give
+        ``actor_steps="auto"``, or set an option that reads an actor trained with ``actor_steps=0``,
+        that is not at all: a ``ValueError``)."""
+        self.actor_steps = resolve_actor_steps(
+            self.actor_steps, self.behaviour_policy, self.critic_target, self.alpha_entropy
+        )
 
     def _next_value(
         self, next_q: th.Tensor, next_logits: Callable[[], th.Tensor], alpha: th.Tensor

@@ -17,8 +17,8 @@ from sb3_hgrn.common.single_agent import TEMPERATURE_SAVE_PARAMS, check_discrete
 from sb3_hgrn.common.soft_actor_critic import (
     SACFigures,
     SoftActorCritic,
-    check_actor_steps,
     check_critic_target,
+    resolve_actor_steps,
     with_behaviour_policy,
 )
 from sb3_hgrn.common.soft_math import (
@@ -59,7 +59,8 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
         option of that name.
     :param actor_steps: actor gradient steps per critic step; 0 never trains the actor, where
         nothing reads it (``behaviour_policy="critic"``, ``critic_target="boltzmann"`` and
-        ``alpha_entropy="boltzmann"``), as :class:`~sb3_hgrn.SACHGRN`'s option of that name.
+        ``alpha_entropy="boltzmann"``); ``"auto"`` (the default) is 0 there and 1 otherwise, as
+        :class:`~sb3_hgrn.SACHGRN`'s option of that name.
     :param target_entropy_ratio: the target entropy is ``target_entropy_ratio * log(n_actions)``.
     :param alpha_init: initial temperature, or ``"auto"``: 0.1 times the standard deviation of the
         rewards stored at the first gradient step (see :mod:`sb3_hgrn.common.temperature`).
@@ -101,7 +102,7 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
         alpha_entropy: str = "boltzmann",
         behaviour_policy: str = "actor",
         critic_target: str = "actor",
-        actor_steps: int = 1,
+        actor_steps: int | str = "auto",
         target_entropy_ratio: float = 0.2,
         alpha_init: float | str = 0.1,
         learn_alpha: bool = True,
@@ -123,7 +124,7 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
             raise ValueError(f"alpha_entropy must be one of {ALPHA_ENTROPIES}, got {alpha_entropy!r}.")
         policy_kwargs = with_behaviour_policy(policy_kwargs, behaviour_policy, "DiscreteSAC")
         check_critic_target(critic_target)
-        check_actor_steps(actor_steps, behaviour_policy, critic_target, alpha_entropy)
+        actor_steps = resolve_actor_steps(actor_steps, behaviour_policy, critic_target, alpha_entropy)
         super().__init__(
             policy,
             check_discrete_env(env, "DiscreteSAC", verbose),
@@ -154,7 +155,7 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
         self.alpha_entropy = alpha_entropy
         self.behaviour_policy = behaviour_policy
         self.critic_target = critic_target
-        self.actor_steps = int(actor_steps)
+        self.actor_steps = actor_steps
         self._set_temperature_options(
             target_entropy_ratio,
             alpha_init,
@@ -204,7 +205,7 @@ class DiscreteSAC(AlgorithmNamedRuns, SoftActorCritic, OffPolicyAlgorithm):
         options that read an actor trained with ``actor_steps=0``."""
         model = super().load(*args, **kwargs)
         check_policy_settings(model, ["behaviour_policy"])
-        model._check_actor_readers()
+        model._resolve_loaded_actor_steps()
         return model
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:

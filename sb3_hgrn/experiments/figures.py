@@ -85,8 +85,6 @@ TRANSFER_SCALES = (0.25, 0.5, 1.0, 2.0, 4.0)
 P_ALPHA_RATIOS = (0.05, 0.1, 0.2, 0.3, 0.5)
 ALPHA_SERIES = ("alpha", "alpha_grad", "entropy", "target_entropy")
 """TensorBoard scalars ``train/<name>`` of the alpha figure."""
-ACTOR_ENTROPY = "actor_entropy"
-"""The actor's entropy, logged by SAC-HGRN beside the entropy its alpha steers by, drawn where logged."""
 SMOOTHING = 0.04
 """Learning curves: moving average over this fraction of a run's training episodes (at least 1)."""
 TRANSFER_FILE = "transfer.json"
@@ -513,21 +511,16 @@ def draw_alpha(done: Sequence[Job]) -> tuple[list[dict[str, Any]], Figure]:
     figure = _new_figure(8, 9)
     axes = figure.subplots(3, 1, sharex=True)
     for index, (preset, jobs) in enumerate(_by_preset(done).items()):
-        scalars = [
-            read_scalars(job.folder, [f"train/{name}" for name in ALPHA_SERIES], [f"train/{ACTOR_ENTROPY}"])
-            for job in jobs
-        ]
-        logs_actor = all(f"train/{ACTOR_ENTROPY}" in s for s in scalars)
-        names = [*ALPHA_SERIES, *([ACTOR_ENTROPY] if logs_actor else [])]
-        series = {name: _curve_rows(preset, name, [s[f"train/{name}"] for s in scalars]) for name in names}
-        rows += [row for name in names for row in series[name]]
+        scalars = [read_scalars(job.folder, [f"train/{name}" for name in ALPHA_SERIES]) for job in jobs]
+        series = {
+            name: _curve_rows(preset, name, [s[f"train/{name}"] for s in scalars]) for name in ALPHA_SERIES
+        }
+        rows += [row for name in ALPHA_SERIES for row in series[name]]
         label, color = _seeds_label(preset, len(jobs)), f"C{index}"
         _plot_band(axes[0], series["alpha"], label, color=color)
         _plot_band(axes[1], series["alpha_grad"], label, color=color)
         _plot_band(axes[2], series["entropy"], f"{label}: entropy", color=color)
         _plot_band(axes[2], series["target_entropy"], f"{label}: target", color=color, ls="--")
-        if ACTOR_ENTROPY in series:
-            _plot_band(axes[2], series[ACTOR_ENTROPY], f"{label}: actor's entropy", color=color, ls=":")
     axes[0].set_yscale("log")
     axes[0].set_ylabel("alpha (log scale)")
     axes[0].set_title("temperature alpha", fontsize=10)
@@ -538,8 +531,7 @@ def draw_alpha(done: Sequence[Job]) -> tuple[list[dict[str, Any]], Figure]:
     )
     axes[2].set_ylabel("entropy (nats)")
     axes[2].set_title(
-        "mean entropy H of softmax(Q / alpha) on the training batches, its target H_target\n"
-        "and SAC-HGRN's actor's entropy (dotted)",
+        "mean entropy H of softmax(Q / alpha) on the training batches and its target H_target",
         fontsize=10,
     )
     axes[2].set_xlabel("agent-steps of training (all agents of all env copies)")

@@ -164,12 +164,13 @@ class SACHGRNPolicy(GraphPolicy):
         return self._act(obs, hidden, deterministic, actor=network)
 
     def critic_act(
-        self, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False
+        self, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False, runs_actor: bool = True
     ) -> tuple[th.Tensor, th.Tensor]:
         """As :meth:`act`, with the actions drawn from the online first critic's Boltzmann policy
         ``softmax(Q / alpha)`` (greedy: its argmax); every network's memory advances as in
-        :meth:`act`."""
-        return self._act(obs, hidden, deterministic, first_critic=self.critics[0])
+        :meth:`act`, except the actor's without ``runs_actor`` (the actor is then not run and its
+        state is returned as given)."""
+        return self._act(obs, hidden, deterministic, first_critic=self.critics[0], runs_actor=runs_actor)
 
     def _act(
         self,
@@ -178,15 +179,20 @@ class SACHGRNPolicy(GraphPolicy):
         deterministic: bool,
         actor: nn.Module | None = None,
         first_critic: nn.Module | None = None,
+        runs_actor: bool = True,
     ) -> tuple[th.Tensor, th.Tensor]:
         """Actions from the policy of ``actor`` (the online one if ``None``), or with
         ``first_critic`` from that network's Boltzmann policy, in the first critic's place; every
-        network's memory advances."""
+        network's memory advances, except the actor's when it acts with ``first_critic`` and not
+        ``runs_actor``."""
         observations, neighbors, groups = self.to_graphs(obs)
         n_graphs, n_agents = observations.shape[:2]
         states = self.split_state(hidden.reshape(n_graphs, n_agents, -1))
         graph = self.graph_batch(neighbors, groups)  # shared by the actor and every critic
-        logits, actor_state = self.actor_logits(observations, graph, states[0], groups, actor)
+        if runs_actor or first_critic is None:
+            logits, actor_state = self.actor_logits(observations, graph, states[0], groups, actor)
+        else:
+            actor_state = states[0]
         new_states = [actor_state]
         for index, (critic, state) in enumerate(zip(self.critics, states[1:], strict=True)):
             acting = index == 0 and first_critic is not None

@@ -14,8 +14,8 @@ from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm, check_added_argu
 from sb3_hgrn.common.soft_actor_critic import (
     SACFigures,
     SoftActorCritic,
-    check_actor_steps,
     check_critic_target,
+    resolve_actor_steps,
     with_behaviour_policy,
 )
 from sb3_hgrn.common.soft_math import (
@@ -94,10 +94,12 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         this option existed load with ``"actor"``, as they trained.
     :param actor_steps: actor gradient steps on each batch, after its one critic step: more let the
         actor keep up with a critic that moves fast (docs/results.md). 0 never runs the actor in
-        training, when nothing reads it (``behaviour_policy="critic"``, ``critic_target="boltzmann"``
-        and ``alpha_entropy="boltzmann"``, the defaults): the critics, alpha and the deployed policy
-        then train exactly as with 1, in about two thirds of the update time, and the saved actor
-        is untrained (docs/usage.md).
+        training or collection, which is only allowed when nothing reads it
+        (``behaviour_policy="critic"``, ``critic_target="boltzmann"`` and
+        ``alpha_entropy="boltzmann"``): the critics, alpha and the deployed policy then train exactly
+        as with 1, in about two thirds of the update time, and the saved actor is untrained.
+        ``"auto"`` (the default) is 0 where nothing reads the actor, as at the defaults, and 1 where
+        something does (docs/usage.md). Models saved before this option existed load with 1.
     :param policy_kwargs: network options for both networks, plus ``n_critics``, ``actor_kwargs``,
         ``critic_kwargs`` (options of one network only), ``tempered_actor`` and ``average_tau`` (a
         Polyak-averaged actor that ``predict`` acts with).
@@ -110,6 +112,7 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         "alpha_entropy": "actor",
         "behaviour_policy": "actor",
         "critic_target": "actor",
+        "actor_steps": 1,
     }
     policy_settings: ClassVar[tuple[str, ...]] = (
         *GraphOffPolicyAlgorithm.policy_settings,
@@ -143,7 +146,7 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         alpha_entropy: str = "boltzmann",
         behaviour_policy: str = "critic",
         critic_target: str = "boltzmann",
-        actor_steps: int = 1,
+        actor_steps: int | str = "auto",
         exploration_fraction: float = 0.1,
         exploration_initial_eps: float | None = None,
         exploration_final_eps: float | None = None,
@@ -164,7 +167,7 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
             raise ValueError(f"alpha_entropy must be one of {ALPHA_ENTROPIES}, got {alpha_entropy!r}.")
         policy_kwargs = with_behaviour_policy(policy_kwargs, behaviour_policy, "SACHGRN")
         check_critic_target(critic_target)
-        check_actor_steps(actor_steps, behaviour_policy, critic_target, alpha_entropy)
+        actor_steps = resolve_actor_steps(actor_steps, behaviour_policy, critic_target, alpha_entropy)
         super().__init__(
             policy,
             env,
@@ -203,7 +206,7 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         self.alpha_entropy = alpha_entropy
         self.behaviour_policy = behaviour_policy
         self.critic_target = critic_target
-        self.actor_steps = int(actor_steps)
+        self.actor_steps = actor_steps
         if _init_setup_model:
             self._setup_model()
 
@@ -211,8 +214,8 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         return ["policy.actor_optimizer", "policy.critic_optimizer"]
 
     def _behaviour_act(self, obs: dict[str, th.Tensor], hidden: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        if self.behaviour_policy == "critic":
-            return self.policy.critic_act(obs, hidden)
+        if self.behaviour_policy == "critic":  # the actor's state is only stored for its training
+            return self.policy.critic_act(obs, hidden, runs_actor=self.actor_steps > 0)
         return super()._behaviour_act(obs, hidden)
 
     @classmethod
@@ -220,7 +223,7 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         """:meth:`GraphOffPolicyAlgorithm.load`, also refusing (a ``ValueError``) options that read an
         actor trained with ``actor_steps=0``."""
         model = super().load(*args, **kwargs)
-        model._check_actor_readers()
+        model._resolve_loaded_actor_steps()
         return model
 
     def _after_actor_steps(self) -> None:
