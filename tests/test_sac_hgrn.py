@@ -108,16 +108,23 @@ def test_auto_actor_steps_train_the_actor_only_where_something_reads_it(monkeypa
 
 
 def test_state_holds_actor_and_critic_memories():
+    """Collection advances every trained network's memory and stores it; ``predict`` runs only the
+    network that chooses and returns the other parts of the state as given."""
     env = bit_vec_env(n_envs=2)
-    model = quick_model(env, policy_kwargs=dict(hidden_dim=16, n_critics=2))
-    obs = env.reset()
-    _, state = model.predict(obs)
-    assert state[0].shape == (1, 8, 3 * 16)
-    actor_state, critic_state, _ = np.split(state[0][0], 3, axis=-1)
-    assert np.abs(actor_state).sum() > 0 and np.abs(critic_state).sum() > 0
-    assert not np.allclose(actor_state, critic_state)  # separate networks, separate memories
-    model.learn(8 * 12)
-    assert model.replay_buffer.hidden.shape[-1] == 48
+    for behaviour, chooser in (("actor", 0), ("critic", 1)):
+        model = quick_model(env, behaviour_policy=behaviour, policy_kwargs=dict(hidden_dim=16, n_critics=2))
+        obs = env.reset()
+        _, state = model.predict(obs)
+        assert state[0].shape == (1, 8, 3 * 16)
+        parts = np.split(state[0][0], 3, axis=-1)
+        assert [bool(np.abs(part).sum()) for part in parts] == [index == chooser for index in range(3)]
+        model.learn(8 * 12)
+        stored = model.replay_buffer.hidden[1 : model.replay_buffer.pos].astype(np.float32)
+        assert stored.shape[-1] == 48
+        actor, first, second = np.split(stored, 3, axis=-1)
+        assert np.abs(first).sum() > 0 and np.abs(second).sum() > 0
+        assert not np.allclose(first, second)  # separate networks, separate memories
+        assert bool(np.abs(actor).sum()) == (model.actor_steps > 0)  # the critic collects: no actor
 
 
 def test_exact_soft_value_and_greedy_value():
@@ -350,19 +357,25 @@ def test_behaviour_policy_collects_and_is_deployed(behaviour_policy, preferred, 
         quick_model(env, behaviour_policy="critic", policy_kwargs=dict(behaviour_policy="actor"))
 
 
-def test_critic_act_advances_every_memory_as_act_does():
+def test_critic_act_advances_every_memory_as_collection_does_and_deployment_only_the_chooser():
     env = bit_vec_env(n_envs=2)
-    policy = quick_model(env, policy_kwargs=dict(hidden_dim=16, n_critics=2)).policy
+    model = quick_model(env, behaviour_policy="actor", policy_kwargs=dict(hidden_dim=16, n_critics=2))
+    policy = model.policy
     obs, _ = policy.obs_to_tensor(env.reset())
     hidden = th.randn(8, policy.state_dim)
     with th.no_grad():
-        _, from_actor = policy.act(obs, hidden)
+        _, collected = model._behaviour_act(obs, hidden)
         actions, from_critic = policy.critic_act(obs, hidden, deterministic=True)
+        _, deployed = policy.act(obs, hidden)
         observations, neighbors, groups = policy.to_graphs(obs)
         state = policy.split_state(hidden.reshape(2, 4, -1))[1]
         q_values, _ = policy.critics[0](observations, policy.graph_batch(neighbors, groups), state)
-    th.testing.assert_close(from_critic, from_actor)
+    th.testing.assert_close(from_critic, collected)
     th.testing.assert_close(actions, q_values.argmax(dim=-1).reshape(-1))
+    actor, *critics = policy.split_state(deployed)
+    th.testing.assert_close(actor, policy.split_state(collected)[0])  # the deployed actor chose
+    for part, given in zip(critics, policy.split_state(hidden)[1:], strict=True):
+        th.testing.assert_close(part, given)  # the critics did not run
 
 
 def test_average_tau_deploys_an_averaged_actor_and_collects_with_the_online_one(tmp_path):

@@ -18,8 +18,9 @@ class SACHGRNPolicy(GraphPolicy):
     """Discrete soft actor-critic on graphs: actor and ``n_critics`` critics with separate parameters.
 
     The carried state is ``[actor state, critic 1 state, ...]`` (see
-    :meth:`~sb3_hgrn.common.policies.GraphPolicy.split_state`): the critics' memories advance while
-    acting, so each transition stores the states both networks had.
+    :meth:`~sb3_hgrn.common.policies.GraphPolicy.split_state`): every network's memory advances
+    while collecting, so each transition stores the states the networks had (the actor's only where
+    it trains); in deployment (:meth:`act`) only the network that chooses runs.
 
     The actor's policy is ``softmax(f(o))`` of its network's outputs ``f`` (its logits, as in the
     paper), or ``softmax(f(o) / alpha)`` with ``tempered_actor``. Both can express the same policies;
@@ -150,15 +151,21 @@ class SACHGRNPolicy(GraphPolicy):
     def act(
         self, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False
     ) -> tuple[th.Tensor, th.Tensor]:
+        """Actions of the deployed policy (``predict`` and every evaluation): only the network that
+        chooses runs (the deployed one, or the online first critic with :attr:`acts_with_critic`); the
+        other networks' parts of the state, which only training reads, are returned as given."""
         if self.acts_with_critic:
-            return self.critic_act(obs, hidden, deterministic)
-        return super().act(obs, hidden, deterministic)
+            return self._act(obs, hidden, deterministic, first_critic=self.critics[0], others=False)
+        if self.behaviour_policy == "critic":
+            return self._act(obs, hidden, deterministic, first_critic=self.deployed_network, others=False)
+        return self._act(obs, hidden, deterministic, actor=self.deployed_network, others=False)
 
     def act_with(
         self, network: nn.Module, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False
     ) -> tuple[th.Tensor, th.Tensor]:
-        """Actions drawn from the policy of ``network``: the online actor or its average, or with
-        ``behaviour_policy="critic"`` the first critic or its average (its Boltzmann policy)."""
+        """Actions drawn from the policy of ``network`` (the online actor or its average, or with
+        ``behaviour_policy="critic"`` the first critic or its average: its Boltzmann policy), every
+        network's memory advancing, as collection stores it."""
         if self.behaviour_policy == "critic":
             return self._act(obs, hidden, deterministic, first_critic=network)
         return self._act(obs, hidden, deterministic, actor=network)
@@ -166,10 +173,10 @@ class SACHGRNPolicy(GraphPolicy):
     def critic_act(
         self, obs: GraphObs, hidden: th.Tensor, deterministic: bool = False, runs_actor: bool = True
     ) -> tuple[th.Tensor, th.Tensor]:
-        """As :meth:`act`, with the actions drawn from the online first critic's Boltzmann policy
-        ``softmax(Q / alpha)`` (greedy: its argmax); every network's memory advances as in
-        :meth:`act`, except the actor's without ``runs_actor`` (the actor is then not run and its
-        state is returned as given)."""
+        """Actions drawn from the online first critic's Boltzmann policy ``softmax(Q / alpha)``
+        (greedy: its argmax), every network's memory advancing as in :meth:`act_with`, except the
+        actor's without ``runs_actor`` (the actor is then not run and its state is returned as given:
+        collection with an actor that never trains)."""
         return self._act(obs, hidden, deterministic, first_critic=self.critics[0], runs_actor=runs_actor)
 
     def _act(
@@ -180,23 +187,24 @@ class SACHGRNPolicy(GraphPolicy):
         actor: nn.Module | None = None,
         first_critic: nn.Module | None = None,
         runs_actor: bool = True,
+        others: bool = True,
     ) -> tuple[th.Tensor, th.Tensor]:
         """Actions from the policy of ``actor`` (the online one if ``None``), or with
-        ``first_critic`` from that network's Boltzmann policy, in the first critic's place; every
-        network's memory advances, except the actor's when it acts with ``first_critic`` and not
-        ``runs_actor``."""
+        ``first_critic`` from that network's Boltzmann policy, in the first critic's place. The
+        network that chooses always runs; with ``others`` the other recurrent networks run too, so
+        that their memories advance (the actor only with ``runs_actor``); a network that does not
+        run returns its part of the state as given."""
         observations, neighbors, groups = self.to_graphs(obs)
         n_graphs, n_agents = observations.shape[:2]
         states = self.split_state(hidden.reshape(n_graphs, n_agents, -1))
         graph = self.graph_batch(neighbors, groups)  # shared by the actor and every critic
-        if runs_actor or first_critic is None:
+        actor_state = states[0]
+        if first_critic is None or (others and runs_actor):
             logits, actor_state = self.actor_logits(observations, graph, states[0], groups, actor)
-        else:
-            actor_state = states[0]
         new_states = [actor_state]
         for index, (critic, state) in enumerate(zip(self.critics, states[1:], strict=True)):
             acting = index == 0 and first_critic is not None
-            if critic.state_dim or acting:
+            if acting or (others and critic.state_dim):
                 q_values, new_state = (first_critic if acting else critic)(observations, graph, state)
                 if acting:
                     logits = q_values / self.temperature.per_agent(groups)
