@@ -9,6 +9,7 @@ import pytest
 import torch as th
 
 from sb3_hgrn.common import buffers
+from sb3_hgrn.common.attention import GraphBatch
 from sb3_hgrn.common.buffers import GraphReplayBuffer, smallest_index_dtype
 from sb3_hgrn.common.off_policy import concatenated, unroll
 
@@ -117,13 +118,25 @@ def test_unroll_carries_the_state_along_a_run_and_restarts_it_at_episode_starts(
     steps = [buffer._get_samples(np.array([0, 0]) + k, np.array([0, 1])) for k in range(4)]
     steps = [step._replace(starts=th.tensor([False, k == 2])) for k, step in enumerate(steps)]
 
-    def counter(observations, graph, state):
-        return state.clone(), state + 1
+    class Counter:
+        """Stands in for a network whose memory counts its steps; its output is the state it read."""
+
+        gru = "a memory"
+
+        def features(self, observations, graph):
+            return observations
+
+        def remember(self, features, state, groups):
+            return state + 1
+
+        def outputs(self, memories, graph):
+            return memories - 1
 
     first = th.full((2, N_AGENTS, 1), 10.0)
-    outputs = unroll(counter, steps, [None] * 4, first)
-    np.testing.assert_array_equal(outputs[:, 0, 0].numpy(), [10, 10, 11, 11, 12, 0, 13, 1])
     batch = concatenated(steps)
+    starts = [step.starts for step in steps]
+    outputs = unroll(Counter(), batch.observations, GraphBatch(batch.neighbors), first, starts)
+    np.testing.assert_array_equal(outputs[:, 0, 0].numpy(), [10, 10, 11, 11, 12, 0, 13, 1])
     np.testing.assert_array_equal(batch.observations[:, 0, 0].numpy(), [0, 0, 1, 1, 2, 2, 3, 3])
     assert concatenated(steps[:1]) is steps[0]
 

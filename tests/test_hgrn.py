@@ -10,6 +10,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 from sb3_hgrn.common.attention import GraphBatch, NeighborAttention
 from sb3_hgrn.common.hgrn import HGRN, MASKED_OUTPUT, PAPER_SIZE, GraphAttention, MeanCommunication, SelfOnly
+from sb3_hgrn.common.off_policy import unroll
 
 IN_DIM, OUT_DIM, HEADS, HEAD_DIM = 6, 7, 2, 3
 
@@ -727,3 +728,38 @@ def test_acting_builds_one_graph_batch_for_all_networks(monkeypatch, algorithm):
     monkeypatch.setattr(GraphBatch, "__init__", lambda self, *args: built.append(original(self, *args)))
     model.predict(env.reset())
     assert len(built) == 1
+
+
+@pytest.mark.parametrize("recurrent", [True, False])
+@pytest.mark.parametrize("group_n_actions", [None, [4, 3, 2]])
+def test_unroll_equals_stepping_the_network_one_step_at_a_time(recurrent, group_n_actions):
+    """:func:`unroll` runs the layers before the memory once over all steps' graphs; its outputs and
+    their gradients equal those of calling the network step by step on each step's own graphs, with
+    the state carried along and reset where an episode starts."""
+    torch.manual_seed(0)
+    n_steps, batch, n_agents = 3, 2, 5
+    n_groups = 1 if group_n_actions is None else len(group_n_actions)
+    net = HGRN(6, 4, hidden_dim=8, n_heads=2, recurrent=recurrent, group_n_actions=group_n_actions)
+    obs = torch.randn(n_steps * batch, n_agents, 6)
+    neighbors = torch.randint(-1, n_agents, (n_steps * batch, n_agents, 3))
+    groups = None if n_groups == 1 else torch.randint(0, n_groups, (n_steps * batch, n_agents))
+    starts = [torch.tensor([False, False]), torch.tensor([True, False]), torch.tensor([False, True])]
+    state = torch.randn(batch, n_agents, net.state_dim)
+    weights = torch.randn(n_steps * batch, n_agents, 4)
+
+    def loss_and_gradients(outputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        valid = outputs > MASKED_OUTPUT
+        return outputs, *torch.autograd.grad((outputs * weights * valid).sum(), list(net.parameters()))
+
+    unrolled = unroll(net, obs, GraphBatch(neighbors, groups, n_groups), state, starts)
+    stepped, carried = [], state
+    for index, step_starts in enumerate(starts):
+        rows = slice(index * batch, (index + 1) * batch)
+        if index > 0:
+            carried = carried * (~step_starts).to(carried.dtype)[:, None, None]
+        step_groups = None if groups is None else groups[rows]
+        output, carried = net(obs[rows], GraphBatch(neighbors[rows], step_groups, n_groups), carried)
+        stepped.append(output)
+    expected = loss_and_gradients(torch.cat(stepped))
+    for ours, theirs in zip(loss_and_gradients(unrolled), expected, strict=True):
+        torch.testing.assert_close(ours, theirs, atol=1e-5, rtol=1e-5)

@@ -287,6 +287,22 @@ class NeighborAttention(torch.autograd.Function):
         return grad_query.view(shape), grad_key.view(shape), grad_value.view(shape), None, None
 
 
+class RowGroups:
+    """The agent groups of a block of rows, as per-group layers read them: ``row_groups`` ``(rows,)``
+    the group of every row, ``group_rows`` the rows of each group (increasing; found with
+    ``torch.nonzero``, which synchronises with an accelerator) and ``group_inverse`` the place of
+    every row in their concatenation.
+
+    :param row_groups: ``(rows,)`` int64 group ids in ``[0, n_groups - 1]``.
+    :param n_groups: number of groups.
+    """
+
+    def __init__(self, row_groups: Tensor, n_groups: int) -> None:
+        self.row_groups = row_groups
+        self.group_rows = [torch.nonzero(row_groups == group).squeeze(1) for group in range(n_groups)]
+        self.group_inverse = torch.argsort(torch.cat(self.group_rows))
+
+
 class GraphBatch:
     """A batch of graphs prepared once per forward pass and shared by the communication layers.
 
@@ -336,10 +352,17 @@ class GraphBatch:
         flat = groups.reshape(-1).long()
         if flat.numel() and (int(flat.min()) < 0 or int(flat.max()) >= self.n_groups):
             raise ValueError(f"group ids must lie in [0, {self.n_groups - 1}].")
-        self.row_groups = flat
-        self.group_rows = [torch.nonzero(flat == group).squeeze(1) for group in range(self.n_groups)]
-        self.group_inverse = torch.argsort(torch.cat(self.group_rows))
+        groups = RowGroups(flat, self.n_groups)
+        self.row_groups, self.group_rows, self.group_inverse = flat, groups.group_rows, groups.group_inverse
         self.column_groups = flat[self.columns]  # (rows, E) group of every entry
+
+    def block(self, first_graph: int, n_graphs: int) -> RowGroups | None:
+        """The agent groups of the rows of graphs ``first_graph`` to ``first_graph + n_graphs - 1``
+        (``None`` with one group), for per-group layers run on those rows alone."""
+        if self.row_groups is None:
+            return None
+        start = first_graph * self.n_agents
+        return RowGroups(self.row_groups[start : start + n_graphs * self.n_agents], self.n_groups)
 
     def list_weights(self, weights: Tensor) -> Tensor:
         """Attention weights ``(rows, heads, E)`` in canonical order laid out over the lists:

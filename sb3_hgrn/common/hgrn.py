@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from sb3_hgrn.common.attention import GraphBatch, NeighborAttention, as_graph_batch
+from sb3_hgrn.common.attention import GraphBatch, NeighborAttention, RowGroups, as_graph_batch
 from sb3_hgrn.validation import is_integer
 
 PAPER_SIZE: dict = {"hidden_dim": 256, "n_heads": 4, "head_dim": 256}
@@ -56,7 +56,7 @@ class Grouped(nn.Module):
     def __getitem__(self, group: int) -> nn.Module:
         return self.members[group]
 
-    def forward(self, *inputs: Tensor, graph: GraphBatch | None = None) -> Tensor:
+    def forward(self, *inputs: Tensor, graph: GraphBatch | RowGroups | None = None) -> Tensor:
         """Apply the copies to ``inputs`` whose leading dimensions are the agents of ``graph``
         (``(batch, n_agents, *item_shape)`` or flattened ``(batch * n_agents, *item_shape)``); one
         group needs no graph. :return: ``(*leading, out_features)``."""
@@ -351,27 +351,45 @@ class HGRN(nn.Module):
         graph = (
             neighbors if isinstance(neighbors, GraphBatch) else GraphBatch(neighbors, groups, self.n_groups)
         )
-        precision = (
-            torch.autocast(obs.device.type, dtype=torch.bfloat16)
-            if self.mixed_precision
-            else contextlib.nullcontext()
-        )
-        with precision:
+        memory = self.remember(self.features(obs, graph), hidden, graph)
+        return self.outputs(memory, graph), memory if self.gru is not None else hidden
+
+    def _precision(self, device: torch.device) -> contextlib.AbstractContextManager:
+        """bfloat16 autocast for the dense layers with ``mixed_precision``, else nothing."""
+        if self.mixed_precision:
+            return torch.autocast(device.type, dtype=torch.bfloat16)
+        return contextlib.nullcontext()
+
+    def features(self, obs: Tensor, graph: GraphBatch) -> Tensor:
+        """The skip concat ``[encoded, hop 1, hop 2]`` ``(batch, n_agents, 3 * hidden_dim)`` of
+        observations ``(batch, n_agents, *obs_shape)``: everything before the memory, so it can be
+        computed for many steps of a sequence at once."""
+        with self._precision(obs.device):
             encoded = self.encode(obs, graph)
             hop1 = self.comm1(encoded, graph)
             hop2 = self.comm2(hop1, graph)
-            features = torch.cat([encoded, hop1, hop2], dim=-1)
-            if self.gru is not None:
-                rows = obs.shape[0] * obs.shape[1]
-                hidden = self.gru(features.reshape(rows, -1), hidden.reshape(rows, -1), graph=graph)
-                features = hidden = hidden.reshape(*obs.shape[:2], -1)
-            out = self.head(features, graph=graph)
-        if self.mixed_precision:
-            out, hidden = out.float(), hidden.float()
+            return torch.cat([encoded, hop1, hop2], dim=-1)
+
+    def remember(self, features: Tensor, hidden: Tensor, graph: GraphBatch | RowGroups) -> Tensor:
+        """The GRU step: the new state ``(batch, n_agents, hidden_dim)`` from :meth:`features` and the
+        state ``hidden``; without recurrence the features themselves (the head reads them)."""
+        if self.gru is None:
+            return features
+        rows = features.shape[0] * features.shape[1]
+        with self._precision(features.device):
+            new = self.gru(features.reshape(rows, -1), hidden.reshape(rows, -1), graph=graph)
+        return new.float().reshape(*features.shape[:2], -1)
+
+    def outputs(self, memory: Tensor, graph: GraphBatch | RowGroups) -> Tensor:
+        """The head's outputs ``(batch, n_agents, n_actions)`` of :meth:`remember`'s result (float32;
+        a group's missing actions at :data:`MASKED_OUTPUT`)."""
+        with self._precision(memory.device):
+            out = self.head(memory, graph=graph)
+        out = out.float()
         if self.n_groups > 1:
             valid = self.valid_actions[graph.row_groups].reshape(out.shape)
             out = out.masked_fill(~valid, MASKED_OUTPUT)
-        return out, hidden
+        return out
 
     def encode(self, obs: Tensor, graph: GraphBatch) -> Tensor:
         """The encoder's output ``(batch, n_agents, hidden_dim)`` for observations ``(batch, n_agents,

@@ -30,6 +30,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_hgrn.common import torch_layers
 from sb3_hgrn.common.arguments import argument_hints, check_argument_types, named_parameters
+from sb3_hgrn.common.attention import GraphBatch
 from sb3_hgrn.common.buffers import GraphReplayBuffer, GraphSamples
 from sb3_hgrn.common.checks import check_rewards
 from sb3_hgrn.common.files import (
@@ -92,22 +93,33 @@ def concatenated(steps: list[GraphSamples]) -> GraphSamples:
     )
 
 
-def unroll(network: HGRN, steps: list[GraphSamples], graphs: list, state: th.Tensor) -> th.Tensor:
-    """Outputs ``(steps * batch, n_agents, n_outputs)`` (step-major, as :func:`concatenated`) of
-    ``network`` along runs of consecutive samples, its recurrent state carried from ``state``
+def unroll(
+    network: HGRN, observations: th.Tensor, graph: GraphBatch, state: th.Tensor, starts: list[th.Tensor]
+) -> th.Tensor:
+    """Outputs ``(steps * batch, n_agents, n_outputs)`` of ``network`` along runs of consecutive
+    samples, step-major (as :func:`concatenated`), its recurrent state carried from ``state``
     ``(batch, n_agents, state_dim)`` (the stored state of the first step) through the run, so that
-    gradients flow back through time, and restarted from zero where a sample's ``starts`` flags the
+    gradients flow back through time, and restarted from zero where a step's ``starts`` flags the
     first step of an episode.
 
-    :param graphs: the prepared graph of every step's neighbours (``GraphPolicy.graph_batch``).
+    The layers before the memory read no state, so they run once over every step's graphs together
+    (:meth:`~sb3_hgrn.common.hgrn.HGRN.features`); only the GRU steps through time.
+
+    :param observations: ``(steps * batch, n_agents, *obs_shape)``, step-major.
+    :param graph: the prepared graphs of all steps' neighbours, step-major (``GraphPolicy.graph_batch``).
+    :param starts: every step's ``(batch,)`` episode-start flags (the first step's are not read).
     """
-    outputs = []
-    for index, (step, graph) in enumerate(zip(steps, graphs, strict=True)):
+    batch = state.shape[0]
+    features = network.features(observations, graph)
+    memories = []
+    for index, step_starts in enumerate(starts):
         if index > 0:
-            state = state * (~step.starts).to(state.dtype)[:, None, None]
-        output, state = network(step.observations, graph, state)
-        outputs.append(output)
-    return th.cat(outputs)
+            state = state * (~step_starts).to(state.dtype)[:, None, None]
+        rows = slice(index * batch, (index + 1) * batch)
+        memory = network.remember(features[rows], state, graph.block(index * batch, batch))
+        state = memory if network.gru is not None else state
+        memories.append(memory)
+    return network.outputs(th.cat(memories), graph)
 
 
 def check_algorithm_arguments(

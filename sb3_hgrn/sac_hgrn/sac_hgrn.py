@@ -9,6 +9,7 @@ import torch as th
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, Schedule
 
+from sb3_hgrn.common.attention import GraphBatch
 from sb3_hgrn.common.buffers import GraphSamples
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm, check_added_arguments, unroll
 from sb3_hgrn.common.soft_actor_critic import (
@@ -230,11 +231,13 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
         self.policy.update_average()
 
     def _actor_logits(
-        self, steps: list[GraphSamples], graphs: list, state: th.Tensor, groups: th.Tensor | None
+        self, batch: GraphSamples, graph: GraphBatch, state: th.Tensor, starts: list[th.Tensor]
     ) -> th.Tensor:
         """The actor's logits ``(steps * batch, n_agents, n_actions)`` along runs of consecutive
-        samples from its stored state ``state`` (see :func:`~sb3_hgrn.common.off_policy.unroll`)."""
-        return self.policy.logits(unroll(self.policy.actor, steps, graphs, state), groups)
+        samples (``batch``, step-major, and every step's ``starts``) from its stored state ``state``
+        (see :func:`~sb3_hgrn.common.off_policy.unroll`)."""
+        outputs = unroll(self.policy.actor, batch.observations, graph, state, starts)
+        return self.policy.logits(outputs, batch.groups)
 
     def _next_actor_logits(self, batch: GraphSamples, graph: Any, state: th.Tensor) -> th.Tensor:
         """The actor's logits ``(batch, n_agents, n_actions)`` at ``batch``'s next observations, from
@@ -252,7 +255,8 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
             actor_state, *critic_states = policy.split_state(steps[0].hidden)
             next_actor_state, *next_critic_states = policy.split_state(batch.next_hidden)
             alpha = policy.temperature.per_agent(batch.groups)
-            graphs = [policy.graph_batch(step.neighbors, step.groups) for step in steps]  # actor and critics
+            graph = policy.graph_batch(batch.neighbors, batch.groups)  # every step's, actor and critics
+            starts = [step.starts for step in steps]
             with th.no_grad():
                 next_graph = policy.graph_batch(batch.next_neighbors, batch.groups)
                 next_q = critic_minimum(
@@ -269,14 +273,14 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
                 target_q = batch.bootstrapped(next_value)
 
             q_values = [
-                unroll(critic, steps, graphs, state)
+                unroll(critic, batch.observations, graph, state, starts)
                 for critic, state in zip(policy.critics, critic_states, strict=True)
             ]
             self._sac_step(
                 q_values,
                 batch.actions.unsqueeze(-1),
                 target_q,
-                partial(self._actor_logits, steps, graphs, actor_state, batch.groups),
+                partial(self._actor_logits, batch, graph, actor_state, starts),
                 alpha,
                 batch.groups,
                 batch.alive,

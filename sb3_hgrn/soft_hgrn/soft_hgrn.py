@@ -172,8 +172,10 @@ class SoftHGRN(GraphOffPolicyAlgorithm):
                 next_graph = self.policy.graph_batch(batch.next_neighbors, batch.groups)
                 next_q, _ = q_net_target(batch.next_observations, next_graph, batch.next_hidden)
                 target_q = batch.bootstrapped(self._next_value(next_q, alpha))
-            graphs = [self.policy.graph_batch(step.neighbors, step.groups) for step in steps]
-            q_values = unroll(q_net, steps, graphs, steps[0].hidden)
+            graph = self.policy.graph_batch(batch.neighbors, batch.groups)  # every step's graphs
+            q_values = unroll(
+                q_net, batch.observations, graph, steps[0].hidden, [step.starts for step in steps]
+            )
             loss = q_regression_loss(q_values, batch.actions.unsqueeze(-1), target_q, batch.alive)
             gradient_step(self.policy.optimizer, loss, q_net, self.max_grad_norm)
             self.policy.update_average()
