@@ -49,11 +49,11 @@ class SACHGRN(SoftActorCritic, GraphOffPolicyAlgorithm):
     Losses and entropies are means over the agents alive at their step (see
     :class:`~sb3_hgrn.common.vec_env.GraphVecEnv` for agents that die).
 
-    Each gradient step updates the critics, then the actor, then alpha (toward
-    ``target_entropy_ratio * log|A|`` on the entropy of the critic's Boltzmann policy
-    ``softmax(Q / alpha)``, the policy the actor is trained toward; or on the actor's own entropy,
-    as in the paper, with ``alpha_entropy="actor"``). The actor's entropy is logged as
-    ``train/actor_entropy`` either way. With ``stochastic=False`` (``-S``) the
+    Each gradient step updates the critics, then the actor (``actor_steps`` times; not at all by
+    default where nothing reads it), then alpha (toward ``target_entropy_ratio * log|A|`` on the
+    entropy of the critic's Boltzmann policy ``softmax(Q / alpha)``, the policy the actor is trained
+    toward; or on the actor's own entropy, as in the paper, with ``alpha_entropy="actor"``). Where
+    the actor trains, its entropy is logged as ``train/actor_entropy``. With ``stochastic=False`` (``-S``) the
     actor acts greedily with epsilon-greedy exploration, the target follows the greedy action and the
     actor moves toward the greedy action of the critic (``"boltzmann"``: cross-entropy to it; the
     other losses maximise ``sum_a pi(a|o) Q(o, a)``).
