@@ -1,7 +1,7 @@
 """Cost of one gradient step of a preset on a packaged env at its budget's sizes, under option variants.
 
 Run: python benchmarks/update_speed.py [--envs surviving_v0 ctc_v0] [--presets soft_hgrn sac_hgrn]
-     [--budget cpu] [--steps 20] [--repeats 3]
+     [--budget cpu] [--steps 20] [--repeats 3] [--average-calls 500]
      [--variant unfused policy_kwargs.optimizer_kwargs.foreach=False] [--variant NAME KEY=VALUE ...]
 
 For each env and preset it builds one model per variant (the library's settings of that run, as
@@ -10,6 +10,8 @@ assignments over them; the variant ``default`` adds none), fills its replay buff
 collection on one env copy, then times ``--steps`` gradient steps (``model.train``). The variants take
 turns, ``--repeats`` times, so that a machine's drift touches them alike, and the best time of each
 is printed in milliseconds per gradient step with its ratio to the first variant's. One torch thread.
+``--average-calls N`` also prints, per variant, the best time of one update of the deployed Polyak
+average (``policy.update_average()``, a part of every gradient step) over rounds of ``N`` calls.
 """
 
 from __future__ import annotations
@@ -34,6 +36,17 @@ def build(env: str, preset: str, budget: str, params: dict):
     return model
 
 
+def average_update_ms(model, calls: int, repeats: int) -> float:
+    """Best milliseconds of one ``policy.update_average()`` over ``repeats`` rounds of ``calls``."""
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for _ in range(calls):
+            model.policy.update_average()
+        best = min(best, (time.perf_counter() - start) / calls)
+    return 1000 * best
+
+
 def main() -> None:
     formatter = argparse.RawDescriptionHelpFormatter
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=formatter)
@@ -42,6 +55,7 @@ def main() -> None:
     parser.add_argument("--budget", default="cpu")
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--average-calls", type=int, default=0, help="also time the Polyak average's update")
     parser.add_argument(
         "--variant", nargs="+", action="append", metavar=("NAME", "KEY=VALUE"),
         help="a name and its --param assignments (default: unfused against default)",
@@ -62,6 +76,9 @@ def main() -> None:
                     best[index] = min(best[index], (time.perf_counter() - start) / args.steps)
             ratios = " / ".join(f"{b / best[0]:.2f}" for b in best[1:])
             print(f"| {env} | {preset} | {' | '.join(f'{1000 * b:.1f}' for b in best)} | {ratios} |")
+            if args.average_calls:
+                averages = [average_update_ms(model, args.average_calls, args.repeats) for model in models]
+                print(f"|   Polyak average update | | {' | '.join(f'{ms:.3f}' for ms in averages)} | |")
 
 
 if __name__ == "__main__":

@@ -95,3 +95,24 @@ def test_a_loaded_average_goes_on_as_the_saved_one(updates_before_saving):
         reference.update_parameters(network)
         loaded.update_parameters(network)
         assert_same_average(reference, loaded)
+
+
+def assert_close_average(want: nn.Module, got: nn.Module) -> None:
+    for (name, expected), actual in zip(want.state_dict().items(), got.state_dict().values(), strict=True):
+        assert th.allclose(actual.double(), expected.double(), atol=1e-6), name
+
+
+def test_the_listed_tensors_follow_the_network_given_and_its_loaded_weights():
+    """The tensor lists are kept between updates: a state dict loaded into the network counts, and
+    another network given is listed afresh (its weights, not the first network's, are averaged)."""
+    network, reference, average = averaged_pair(tau=1.0)  # weight 1: the average copies the network
+    average.update_parameters(network)
+    other = nn.Sequential(nn.Linear(3, 4), nn.BatchNorm1d(4), nn.Linear(4, 2))
+    network.load_state_dict(other.state_dict())
+    average.update_parameters(network)
+    assert_close_average(network, average.module)
+    train_step(other, 1)
+    average.update_parameters(other)
+    assert_close_average(other, average.module)
+    with pytest.raises(ValueError, match="different tensors"):
+        average.update_parameters(nn.Linear(3, 4))

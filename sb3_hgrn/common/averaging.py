@@ -54,18 +54,36 @@ class PolyakAverage(AveragedModel):
     def __init__(self, network: nn.Module, tau: float):
         super().__init__(network, multi_avg_fn=PolyakWeight(tau))
         self.copies_next = True
+        self._listed: tuple[nn.Module, list[list[th.Tensor]]] | None = None
         self.register_load_state_dict_post_hook(PolyakAverage._count_loaded)
 
+    def _tensors(self, model: nn.Module) -> list[list[th.Tensor]]:
+        """The averaged parameters, ``model``'s, the averaged buffers and ``model``'s, listed once
+        per ``model``: walking the modules costs about as much as the update itself on networks of
+        several agent groups. The lists hold the tensor objects themselves, which ``to()`` and
+        ``load_state_dict`` update in place."""
+        if self._listed is None or self._listed[0] is not model:
+            tensors = [
+                list(self.module.parameters()),
+                list(model.parameters()),
+                list(self.module.buffers()),
+                list(model.buffers()),
+            ]
+            if len(tensors[0]) != len(tensors[1]) or len(tensors[2]) != len(tensors[3]):
+                raise ValueError("The averaged network and the given one hold different tensors.")
+            self._listed = (model, tensors)
+        return self._listed[1]
+
+    @th.no_grad()
     def update_parameters(self, model: nn.Module) -> None:
         """Average ``model``'s parameters in (the first call copies them) and copy its buffers."""
-        averaged = [param.detach() for param in self.module.parameters()]
-        current = [param.detach() for param in model.parameters()]
+        averaged, current, own_buffers, their_buffers = self._tensors(model)
         if self.copies_next:
             th._foreach_copy_(averaged, current)
         else:
             self.multi_avg_fn(averaged, current, self.n_averaged)
-        for own, theirs in zip(self.module.buffers(), model.buffers(), strict=True):
-            own.detach().copy_(theirs.detach())
+        if own_buffers:
+            th._foreach_copy_(own_buffers, their_buffers)
         self.n_averaged += 1
         self.copies_next = False
 
