@@ -2,6 +2,7 @@
 
 Run: nice -n 10 python benchmarks/single_agent_zoo.py --envs CartPole-v1 --seeds 5 --threads 1
      [--algorithms soft_dqn discrete_sac dqn ppo] [--results benchmarks/single_agent_zoo.json]
+     [--timesteps 200000]
 
 Every algorithm trains each env for the RL Zoo's DQN budget (``n_timesteps`` of rl_zoo3's
 ``hyperparams/dqn.yml``, read from the installed ``rl-zoo3`` package: ``pip install -e ".[zoo]"``) with
@@ -12,6 +13,11 @@ copies' observation statistics), SoftDQN and DiscreteSAC with those of
 over ``--eval-episodes`` episodes of an env seeded ``seed + 1000``. The table gives the IQM over seeds
 with its 95 % stratified-bootstrap interval (:mod:`sb3_hgrn.experiments.stats`, rliable) and the wall
 time per 100k env steps (training only), with its ratio to DQN's.
+
+``--timesteps N`` trains every algorithm for N env steps instead (MinAtar's 5M frames are hours per run
+on a CPU); the schedules keep their fractions of the budget, except the MinAtar paper's DQN
+exploration, which keeps its 100k frames. Such runs are kept under ``env@N/algorithm/seed``, apart from
+the full budget's.
 
 Runs go one at a time, seed-major (every algorithm's seed 0 first), and each finished run is added
 to the ``--results`` JSON file at once (written to a temporary file, then renamed), so a killed
@@ -44,6 +50,7 @@ from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
 from sb3_hgrn.common.files import write_text_atomically
 from sb3_hgrn.common.torch_layers import AgentViewCNN
+from sb3_hgrn.envs.registration import ensure_registered
 from sb3_hgrn.experiments.single_agent import SINGLE_AGENT_PRESETS, env_settings, make_model
 from sb3_hgrn.experiments.stats import iqm_interval
 
@@ -66,7 +73,7 @@ MINATAR_DQN: dict[str, Any] = dict(
     gradient_steps=1,
     exploration_initial_eps=1.0,
     exploration_final_eps=0.1,
-    exploration_fraction=0.02,  # 100k of 5M frames
+    exploration_fraction=0.02,  # 100k of 5M frames (MINATAR_EXPLORATION_STEPS)
     policy_kwargs=dict(
         features_extractor_class=AgentViewCNN,
         features_extractor_kwargs=dict(features_dim=128, channels=[16]),
@@ -75,17 +82,20 @@ MINATAR_DQN: dict[str, Any] = dict(
         optimizer_kwargs=dict(alpha=0.95, centered=True, eps=0.01),
     ),
 )
+MINATAR_EXPLORATION_STEPS = 100_000
 """The RL Zoo has no MinAtar settings: DQN as in the MinAtar paper (Young and Tian, 2019, Table 2 and
 its examples/dqn.py: one 3x3 convolution of 16 channels, 128 hidden units, centred RMSProp)."""
 
 
-def zoo_settings(algorithm: str, env: str) -> dict[str, Any]:
+def zoo_settings(algorithm: str, env: str, timesteps: int | None = None) -> dict[str, Any]:
     """The RL Zoo's settings of ``algorithm`` (``"dqn"``, ``"ppo"``) for ``env`` from the installed
     rl_zoo3's ``hyperparams/<algorithm>.yml`` (``policy_kwargs``, a ``dict(...)`` string there, read as
-    literals), or for DQN on MinAtar :data:`MINATAR_DQN`; ``SystemExit`` naming the install command or
-    the env when they are missing."""
+    literals), or for DQN on MinAtar :data:`MINATAR_DQN` (its exploration lasting
+    :data:`MINATAR_EXPLORATION_STEPS` of ``timesteps``, the paper's budget by default); ``SystemExit``
+    naming the install command or the env when they are missing."""
     if algorithm == "dqn" and env.startswith("MinAtar/"):
-        return dict(MINATAR_DQN)
+        budget = timesteps or MINATAR_DQN["n_timesteps"]
+        return {**MINATAR_DQN, "exploration_fraction": min(1.0, MINATAR_EXPLORATION_STEPS / budget)}
     spec = importlib.util.find_spec("rl_zoo3")
     if spec is None or not spec.submodule_search_locations:
         raise SystemExit(
@@ -116,7 +126,7 @@ def make_zoo_model(algorithm: str, env: str, seed: int) -> tuple[BaseAlgorithm, 
     ``seed + 1000``, normalised with the training copies' statistics where the Zoo normalises."""
     settings = zoo_settings(algorithm, env)
     arguments = {key: zoo_value(value) for key, value in settings.items() if key not in ZOO_ONLY_KEYS}
-    train_env = make_vec_env(env, n_envs=int(settings.get("n_envs", 1)), seed=seed)
+    train_env = make_vec_env(ensure_registered(env), n_envs=int(settings.get("n_envs", 1)), seed=seed)
     eval_env = make_vec_env(env, n_envs=1, seed=seed + 1000)
     if settings.get("normalize"):
         train_env = VecNormalize(train_env, gamma=arguments.get("gamma", 0.99))
@@ -138,9 +148,9 @@ def train_once(algorithm: str, env: str, seed: int, timesteps: int, eval_episode
     """Train one run and evaluate its greedy policy: its score, steps and training wall time."""
     eval_env = None  # a Monitor env reset with seed + 1000, unless the model needs its own (PPO's)
     if algorithm == "dqn":
-        settings = zoo_settings("dqn", env)
+        settings = zoo_settings("dqn", env, timesteps)
         arguments = {key: value for key, value in settings.items() if key not in ZOO_ONLY_KEYS}
-        model = DQN(settings["policy"], Monitor(gym.make(env)), seed=seed, **arguments)
+        model = DQN(settings["policy"], Monitor(gym.make(ensure_registered(env))), seed=seed, **arguments)
     elif algorithm in ZOO_ALGORITHMS:
         model, eval_env = make_zoo_model(algorithm, env, seed)
     else:
@@ -197,15 +207,21 @@ def main() -> None:
     parser.add_argument("--eval-episodes", type=int, default=20)
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     parser.add_argument("--results", default="benchmarks/single_agent_zoo.json", help="JSON of finished runs")
+    parser.add_argument(
+        "--timesteps", type=int, help="env steps of every run (default: the Zoo DQN's budget)"
+    )
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     path = Path(args.results)
     results = load_results(path)
-    for env in args.envs:
-        timesteps = int(zoo_settings("dqn", env)["n_timesteps"])
+    if args.timesteps is not None and args.timesteps <= 0:
+        parser.error(f"--timesteps must be positive, got {args.timesteps}")
+    labels = [env if args.timesteps is None else f"{env}@{args.timesteps}" for env in args.envs]
+    for env, label in zip(args.envs, labels, strict=True):
+        timesteps = args.timesteps or int(zoo_settings("dqn", env)["n_timesteps"])
         for seed in range(args.seeds):
             for algorithm in args.algorithms:
-                key = f"{env}/{algorithm}/{seed}"
+                key = f"{label}/{algorithm}/{seed}"
                 if key in results:
                     continue
                 results[key] = train_once(algorithm, env, seed, timesteps, args.eval_episodes)
@@ -214,7 +230,7 @@ def main() -> None:
     print(f"\n{args.threads} torch thread(s), greedy return over {args.eval_episodes} episodes")
     print("| env | algorithm | seeds | IQM [95 % CI] | wall s / 100k steps | x DQN |")
     print("| --- | --- | --- | --- | --- | --- |")
-    print("\n".join(table_rows(results, args.envs, args.algorithms)))
+    print("\n".join(table_rows(results, labels, args.algorithms)))
 
 
 if __name__ == "__main__":

@@ -318,3 +318,31 @@ def test_cli_names_bad_single_agent_input(extra, message, tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["train", "--preset", "soft_dqn", "--folder", str(tmp_path), *extra])
     assert message in capsys.readouterr().err
+
+
+def test_an_env_id_of_a_plugin_package_is_registered_from_its_entry_point(monkeypatch):
+    """Gymnasium 1.x no longer calls the ``gymnasium.envs`` entry points that plugin packages (as
+    MinAtar) register their envs with; the single-agent classes and runs call the one named after
+    the id's namespace, once, before making the env."""
+    from types import SimpleNamespace
+
+    from sb3_hgrn.envs import registration
+
+    calls = []
+
+    def register_toy_envs():
+        calls.append("Toy")
+        gym.register(id="Toy/Cartpole-v7", entry_point="gymnasium.envs.classic_control:CartPoleEnv")
+
+    plugins = [SimpleNamespace(name="Other", load=lambda: pytest.fail("another namespace was loaded"))]
+    plugins.append(SimpleNamespace(name="Toy", load=lambda: register_toy_envs))
+    monkeypatch.setattr(registration, "entry_points", lambda group: plugins)
+    try:
+        model = SoftDQN("MlpPolicy", "Toy/Cartpole-v7", seed=0)
+        assert model.env.observation_space.shape == (4,)
+        assert registration.ensure_registered("Toy/Cartpole-v7") == "Toy/Cartpole-v7"
+        assert calls == ["Toy"]  # registered once
+        with pytest.raises(gym.error.NamespaceNotFound):
+            SoftDQN("MlpPolicy", "Unknown/Game-v0")
+    finally:
+        gym.registry.pop("Toy/Cartpole-v7", None)

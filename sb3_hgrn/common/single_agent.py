@@ -21,20 +21,23 @@ from stable_baselines3.dqn.policies import DQNPolicy
 from sb3_hgrn.common.optimizers import fused_by_default
 from sb3_hgrn.common.soft_math import sample_actions
 from sb3_hgrn.common.temperature import EntropyTemperature
+from sb3_hgrn.envs.registration import ensure_registered
 
 TEMPERATURE_SAVE_PARAMS = ["temperature.optimizer"]
 """The state dict a single-agent soft algorithm saves besides its policy's: the temperature optimiser's."""
 
 
 def check_discrete_env(env: GymEnv | str | None, algorithm: str, verbose: int = 0) -> GymEnv | None:
-    """``env`` (made from its id when it is a string, as SB3 does) after checking that its action
-    space is ``Discrete``; raises a ``TypeError`` naming the space otherwise.
+    """``env`` (made from its id when it is a string, as SB3 does, after registering the id's
+    namespace where a plugin package declares it: :func:`~sb3_hgrn.envs.registration.ensure_registered`)
+    after checking that its action space is ``Discrete``; raises a ``TypeError`` naming the space
+    otherwise.
 
     :param algorithm: the algorithm's name, for the message.
     """
     if env is None:
         return None
-    env = maybe_make_env(env, verbose)
+    env = maybe_make_env(ensure_registered(env) if isinstance(env, str) else env, verbose)
     space = env.action_space
     if not isinstance(space, spaces.Discrete):
         raise TypeError(

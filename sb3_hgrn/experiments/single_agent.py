@@ -25,6 +25,7 @@ from stable_baselines3.common.monitor import Monitor
 
 from sb3_hgrn.common import torch_layers
 from sb3_hgrn.common.files import save_model_atomically, write_text_atomically
+from sb3_hgrn.envs.registration import ensure_registered
 from sb3_hgrn.experiments.config import ConfigError, read_yaml_file
 from sb3_hgrn.presets import merge
 
@@ -135,7 +136,7 @@ def make_model(
     try:
         return algorithm(
             settings.get("policy", "MlpPolicy"),
-            Monitor(gym.make(env, **settings.get("env_kwargs", {}))),
+            Monitor(gym.make(ensure_registered(env), **settings.get("env_kwargs", {}))),
             seed=seed,
             tensorboard_log=tensorboard_log,
             **arguments,
@@ -177,7 +178,7 @@ def train_single_agent(
     model.learn(steps)
     wall_time = time.perf_counter() - start
     save_model_atomically(model, folder / "model.zip")
-    eval_env = Monitor(gym.make(env, **settings.get("env_kwargs", {})))
+    eval_env = Monitor(gym.make(ensure_registered(env), **settings.get("env_kwargs", {})))
     eval_env.reset(seed=seed + 1000)
     episodes = int(settings.get("eval_episodes", DEFAULT_EVAL_EPISODES))
     mean, std = evaluate_policy(model, eval_env, n_eval_episodes=episodes, deterministic=True)
