@@ -1,4 +1,4 @@
-"""Candidate defaults on a suite of eight many-agent envs, 3 seeds each, normalised over the suite.
+"""Candidate defaults on a suite of nine many-agent envs, 3 seeds each, normalised over the suite.
 
 Run: python benchmarks/defaults_suite.py --folder sweeps/suite [--candidates default gs2:gradient_steps=2]
      [--presets soft_hgrn dqn dgn] [--seeds 3] [--envs surviving_v0 ...] [--equal-time-to soft_hgrn]
@@ -53,8 +53,13 @@ SUITE = (
     SuiteEnv("spread_mpe2", "examples.spread_mpe2:make_env", "examples/configs/spread_mpe2.yml"),
     SuiteEnv("kaz_pettingzoo", "examples.kaz_pettingzoo:make_env", "examples/configs/kaz_pettingzoo.yml"),
     SuiteEnv("tag_mpe2", "examples.tag_mpe2:make_env", "examples/configs/tag_mpe2.yml"),
+    SuiteEnv(
+        "pursuit_magent2",
+        "examples.adversarial_pursuit_magent2:make_env",
+        "examples/configs/adversarial_pursuit_magent2.yml",
+    ),
 )
-"""The four paper envs at their ``cpu`` budget, then four third-party envs through the examples' glue."""
+"""The four paper envs at their ``cpu`` budget, then five third-party envs through the examples' glue."""
 
 BUDGET = "cpu"
 

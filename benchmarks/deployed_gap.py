@@ -1,7 +1,7 @@
 """Does the saved model keep what training showed? Its evaluation against its last training episodes.
 
 Run: python benchmarks/deployed_gap.py FOLDER [FOLDER ...] [--fraction 0.1] [--online-episodes N]
-     [--env MODULE:ATTR]
+     [--greedy-episodes N] [--env MODULE:ATTR]
 
 Reads every finished run folder under the given folders (those of ``sb3-hgrn train``, ``sweep`` or
 ``reproduce``: a ``team_returns.csv`` of training team episodes and an ``eval.json``) and prints one
@@ -13,8 +13,13 @@ of the training mean. A summary line per folder, env and preset follows.
 
 With ``--online-episodes N``, runs whose model deploys a Polyak average (``policy_kwargs.average_tau``)
 are also evaluated with their online network over N episodes on the same env seeds as their final
-evaluation (``sb3-hgrn evaluate RUN --online``): the same training run, deployed either way. Runs of
-an env of one's own need ``--env`` naming it (as ``sb3-hgrn evaluate --env``).
+evaluation (``sb3-hgrn evaluate RUN --online``): the same training run, deployed either way.
+
+With ``--greedy-episodes N`` the saved model is evaluated twice more over N episodes on those env
+seeds, with its sampled actions and with greedy ones (``sb3-hgrn evaluate RUN --deterministic``): the
+same network under either action rule (for DQN-style presets, whose plain policy is greedy already,
+both are greedy). Runs of an env of one's own need ``--env`` naming it (as ``sb3-hgrn evaluate
+--env``).
 """
 
 from __future__ import annotations
@@ -63,6 +68,19 @@ def online_evaluation(folder: Path, n_episodes: int, env: str | None) -> float |
         vec_env.close()
 
 
+def action_rule_evaluations(folder: Path, n_episodes: int, env: str | None) -> tuple[float, float]:
+    """Mean team returns of a run's saved model with sampled and with greedy actions, ``n_episodes``
+    each, both from the env seeds of its final evaluation."""
+    means = []
+    for deterministic in (False, True):
+        model, vec_env, _ = load_run(folder, env=env, device="cpu")
+        try:
+            means.append(evaluate_model(model, vec_env, n_episodes, deterministic=deterministic)["mean"])
+        finally:
+            vec_env.close()
+    return means[0], means[1]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -70,15 +88,20 @@ def main() -> None:
     parser.add_argument("folders", nargs="+", type=Path)
     parser.add_argument("--fraction", type=float, default=0.1, help="share of the last training episodes")
     parser.add_argument("--online-episodes", type=int, default=0, help="also evaluate the online network")
+    parser.add_argument(
+        "--greedy-episodes", type=int, default=0, help="also evaluate sampled against greedy actions"
+    )
     parser.add_argument("--env", help="the MODULE:ATTR env of runs of an env of one's own")
     args = parser.parse_args()
     th.set_num_threads(1)
     groups: dict[tuple[str, ...], list[tuple[float, bool]]] = defaultdict(list)
     online_groups: dict[tuple[str, ...], list[tuple[float, bool]]] = defaultdict(list)
+    rule_groups: dict[tuple[str, ...], list[tuple[float, float]]] = defaultdict(list)
     print(
-        "| run | training tail (mean +- std, episodes) | saved model | gap | kept | online network | kept |"
+        "| run | training tail (mean +- std, episodes) | saved model | gap | kept | online network | kept "
+        "| sampled | greedy |"
     )
-    print("|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     common = Path(os.path.commonpath([Path(folder).resolve() for folder in args.folders]))
     for root in args.folders:
         # several folders: each run is named with where its folder differs first, as their layouts may match
@@ -96,9 +119,15 @@ def main() -> None:
             if value is not None:
                 online_groups[key].append((value - mean, value >= mean - std))
                 online = f"{value:.1f} | {'yes' if value >= mean - std else 'NO'}"
+            rules = "- | -"
+            if args.greedy_episodes:
+                sampled, greedy = action_rule_evaluations(folder, args.greedy_episodes, args.env)
+                rule_groups[key].append((sampled, greedy))
+                rules = f"{sampled:.1f} | {greedy:.1f}"
             print(
                 f"| {Path(*prefix, folder.relative_to(root))} | {mean:.1f} +- {std:.1f} ({count}) "
-                f"| {evaluation:.1f} | {evaluation - mean:+.1f} | {'yes' if kept else 'NO'} | {online} |",
+                f"| {evaluation:.1f} | {evaluation - mean:+.1f} | {'yes' if kept else 'NO'} | {online} "
+                f"| {rules} |",
                 flush=True,
             )
     print("\n| point / env / preset | deployed | mean gap | runs kept |")
@@ -107,6 +136,15 @@ def main() -> None:
         for key, values in table.items():
             gaps, kept = zip(*values, strict=True)
             print(f"| {'/'.join(key)} | {label} | {np.mean(gaps):+.1f} | {sum(kept)} of {len(kept)} |")
+    if rule_groups:
+        print("\n| point / env / preset | sampled (mean) | greedy (mean) | greedy - sampled | greedy ahead |")
+        print("|---|---|---|---|---|")
+        for key, values in rule_groups.items():
+            sampled, greedy = (np.array(column) for column in zip(*values, strict=True))
+            print(
+                f"| {'/'.join(key)} | {sampled.mean():.1f} | {greedy.mean():.1f} | "
+                f"{(greedy - sampled).mean():+.1f} | {int((greedy > sampled).sum())} of {len(values)} |"
+            )
 
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
-"""The third-party env examples beside battle and spread (examples/kaz_pettingzoo.py, examples/tag_mpe2.py):
+"""The third-party env examples beside battle and spread (examples/kaz_pettingzoo.py, examples/tag_mpe2.py,
+examples/adversarial_pursuit_magent2.py):
 their glue builds the env as documented, and every example's config file (examples/configs/) trains its
 ``ci`` budget through the command line."""
 
@@ -22,6 +23,7 @@ EXAMPLE_PACKAGES = {
     "spread_mpe2": "mpe2",
     "kaz_pettingzoo": KAZ_MODULE,
     "tag_mpe2": "mpe2",
+    "adversarial_pursuit_magent2": "magent2",
 }
 
 
@@ -98,6 +100,29 @@ def test_tag_predators_learn_the_prey_are_driven_and_every_contact_pays_each_pre
     assert obs["obs"].shape == (8, 2 + 2 + 2 * 2 + 2 * 4 + 2 * 4)  # 2 obstacles and 4 agents observed
     random_steps(vec_env, 5)
     vec_env.close()
+
+
+def test_pursuit_predators_learn_with_their_nearest_fellows_and_pay_for_every_tag():
+    pursuit = load_example("adversarial_pursuit_magent2", "magent2")
+    env = pursuit.make_env(map_size=20, max_cycles=10, k=2)
+    env.reset(seed=0)
+    grid, (predators, prey) = env.unwrapped.env, env.unwrapped.handles
+    ids = grid.get_agent_id(predators)
+    assert env.possible_agents == [f"predator_{i}" for i in range(len(ids))] and len(ids) == 5
+    assert env.driven_agents == tuple(f"prey_{i}" for i in range(grid.get_num(prey)))
+    cells = pursuit.predator_cells(env.env)
+    np.testing.assert_array_equal(cells[env.env.learner_rows_of(ids)], grid.get_pos(predators))
+    assert_nearest_first(env.neighbors(), cells, k=2)
+
+    _, rewards, *_ = env.step({agent: 0 for agent in env.agents})  # 0: stay
+    assert set(rewards.values()) == {0.0}
+    tagger = pursuit.make_env(map_size=20, max_cycles=10, tag_penalty=-0.5)
+    tagger.reset(seed=0)
+    for tag in range(5, 13):  # actions: stay, 4 moves, then 8 tags
+        _, rewards, *_ = tagger.step({agent: tag for agent in tagger.agents})
+        prey_tagged = np.array(list(rewards.values())) + 0.5  # each tag costs 0.5, each prey hit pays 1
+        np.testing.assert_allclose(prey_tagged, np.round(prey_tagged), atol=1e-6)
+        assert (prey_tagged > -1e-6).all()
 
 
 @pytest.mark.parametrize("name", sorted(EXAMPLE_PACKAGES))
