@@ -102,7 +102,7 @@ def test_tag_predators_learn_the_prey_are_driven_and_every_contact_pays_each_pre
     vec_env.close()
 
 
-def test_pursuit_predators_learn_with_their_nearest_fellows_and_pay_for_every_tag():
+def test_pursuit_predators_learn_with_their_nearest_fellows_and_pay_for_every_tag(tmp_path):
     pursuit = load_example("adversarial_pursuit_magent2", "magent2")
     env = pursuit.make_env(map_size=20, max_cycles=10, k=2)
     env.reset(seed=0)
@@ -123,6 +123,13 @@ def test_pursuit_predators_learn_with_their_nearest_fellows_and_pay_for_every_ta
         prey_tagged = np.array(list(rewards.values())) + 0.5  # each tag costs 0.5, each prey hit pays 1
         np.testing.assert_allclose(prey_tagged, np.round(prey_tagged), atol=1e-6)
         assert (prey_tagged > -1e-6).all()
+
+    episodes = pursuit.main(
+        ["--map-size", "20", "--max-cycles", "10", "--copies", "1", "--timesteps", "200",
+         "--learning-starts", "60", "--eval-episodes", "1", "--save", str(tmp_path / "pursuit.zip")]
+    )  # fmt: skip
+    assert [episode["l"] for episode in episodes["random"] + episodes["soft_hgrn"]] == [10, 10]
+    assert (tmp_path / "pursuit.zip").exists()
 
 
 @pytest.mark.parametrize("name", sorted(EXAMPLE_PACKAGES))
