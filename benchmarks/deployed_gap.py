@@ -35,7 +35,7 @@ import numpy as np
 import torch as th
 
 from sb3_hgrn.experiments.policy_evaluation import evaluate_model
-from sb3_hgrn.experiments.runs import load_run
+from sb3_hgrn.experiments.runs import EVAL_SEED_OFFSET, load_run
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # examples.<env>:make_env of one's own runs
 
@@ -71,13 +71,14 @@ def online_evaluation(folder: Path, n_episodes: int, env: str | None) -> float |
 def action_rule_evaluations(folder: Path, n_episodes: int, env: str | None) -> tuple[float, float]:
     """Mean team returns of a run's saved model with sampled and with greedy actions, ``n_episodes``
     each, both from the env seeds of its final evaluation."""
+    model, vec_env, config = load_run(folder, env=env, device="cpu")
     means = []
-    for deterministic in (False, True):
-        model, vec_env, _ = load_run(folder, env=env, device="cpu")
-        try:
+    try:
+        for deterministic in (False, True):
+            vec_env.seed(config.seed + EVAL_SEED_OFFSET)  # both rules from the same env seeds
             means.append(evaluate_model(model, vec_env, n_episodes, deterministic=deterministic)["mean"])
-        finally:
-            vec_env.close()
+    finally:
+        vec_env.close()
     return means[0], means[1]
 
 
