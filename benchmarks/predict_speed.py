@@ -1,7 +1,7 @@
 """Cost of deploying a preset: milliseconds per ``predict`` call on a packaged env at its budget's sizes.
 
 Run: python benchmarks/predict_speed.py [--envs surviving_v0 ctc_v0] [--presets soft_hgrn sac_hgrn]
-     [--budget cpu] [--calls 100] [--repeats 5] [--compile]
+     [--budget cpu] [--config FILE ...] [--calls 100] [--repeats 5] [--compile]
 
 For each env and preset it builds an untrained model of the run's settings (as ``sb3-hgrn train --env
 ENV --preset PRESET`` resolves them) on the budget's env copies, resets the env and times ``--calls``
@@ -36,7 +36,7 @@ def best_call_ms(model, obs, calls: int, repeats: int) -> float:
 def predict_row(env_name: str, preset: str, args: argparse.Namespace) -> str:
     """The table row of one env and preset: slots, eager ms and, with ``--compile``, compiled ms and
     the compilation's seconds."""
-    config = resolve_config(env_name, preset, args.budget)
+    config = resolve_config(env_name, preset, args.budget, config_file=args.config)
     env = make_env(config, config.n_envs, 0)
     model = new_model(config, env, verbose=0, tensorboard_log=None, device="cpu")
     obs = env.reset()
@@ -58,6 +58,10 @@ def main() -> None:
     parser.add_argument("--envs", nargs="+", default=["surviving_v0", "ctc_v0"])
     parser.add_argument("--presets", nargs="+", default=["soft_hgrn", "sac_hgrn"])
     parser.add_argument("--budget", default="cpu")
+    parser.add_argument(
+        "--config", nargs="+", default=None, metavar="FILE",
+        help="config files of a user env (MODULE:ATTR in --envs), as sb3-hgrn train --config takes them",
+    )  # fmt: skip
     parser.add_argument("--calls", type=int, default=100)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--compile", action="store_true", help="also time the network under torch.compile")

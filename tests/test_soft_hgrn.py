@@ -73,6 +73,22 @@ def test_predict_threads_recurrent_state_like_recurrent_ppo():
     assert not np.allclose(next_state[0], fresh_state[0])
 
 
+@pytest.mark.parametrize("algorithm", [SoftHGRN, SACHGRN])
+def test_predict_acts_in_evaluation_mode_however_training_mode_was_set(algorithm):
+    """predict() switches to evaluation mode when the policy, or only its deployed network, was left
+    in training mode (a features extractor with dropout would act differently)."""
+    env = bit_env()
+    model = algorithm("GraphPolicy", env, learning_starts=64, batch_size=8, policy_kwargs=SMALL, seed=0)
+    obs = env.reset()
+    policy = model.policy
+    policy.set_training_mode(True)
+    model.predict(obs)
+    assert not policy.training and not policy.deployed_network.training
+    policy.deployed_network.train(True)  # only the network, behind the policy's back
+    model.predict(obs)
+    assert not any(module.training for module in policy.deployed_network.modules())
+
+
 def test_hidden_state_is_threaded_and_stored_during_warm_up():
     env = bit_env(n_envs=2)
     model = quick_model(env, learning_starts=10_000)

@@ -389,12 +389,18 @@ def test_a_sweep_stopped_with_ctrl_c_leaves_no_run_behind(tmp_path, request, bac
     request.getfixturevalue("local_ray" if backend_name == "ray" else "busy_cores")
     folders = [tmp_path / "uav_mbs_v0" / "soft_hgrn" / f"seed_{seed}" for seed in (0, 1)]
     jobs = [Job("uav_mbs_v0", "soft_hgrn", seed, folder) for seed, folder in enumerate(folders)]
-    pressed = []
+    pressed, not_started = [], []
 
     def press_ctrl_c() -> None:
-        wait_until_started(folders, folders[1] / "train.log")
-        pressed.append(time.time())
-        _thread.interrupt_main()
+        """Press Ctrl-C once both runs train, or at the latest when waiting for them fails (the
+        sweep would otherwise train on for hours instead of the test failing)."""
+        try:
+            wait_until_started(folders, folders[1] / "train.log")
+        except AssertionError as error:
+            not_started.append(str(error))
+        finally:
+            pressed.append(time.time())
+            _thread.interrupt_main()
 
     threading.Thread(target=press_ctrl_c, daemon=True).start()
     with pytest.raises(KeyboardInterrupt):
@@ -407,6 +413,7 @@ def test_a_sweep_stopped_with_ctrl_c_leaves_no_run_behind(tmp_path, request, bac
             backend=backends.make_backend(backend_name),
         )
     assert_gone(str(tmp_path), pressed[0])
+    assert not not_started, f"the runs did not both start within {START_WITHIN_S} s: {not_started[0]}"
     assert all(lock_holder(folder) is None and read_eval(folder) is None for folder in folders)
 
 

@@ -67,19 +67,22 @@ def available_memory() -> int | None:
 MEMORY_WARNING_FRACTION = 0.5
 """A replay buffer expected to take more than this fraction of the available memory is warned about."""
 MEMORY_WARNING_BYTES = 2 * 2**30
-"""The bytes above which a replay buffer is warned about where the available memory is unknown."""
+"""A replay buffer expected to take more than this is warned about however much memory is available:
+a laptop's share for one run (SB3's default of 1,000,000 transitions of image-like views passes it)."""
 
 
 def warn_if_too_large(expected_bytes: int, buffer_size: int) -> None:
     """Warn (``UserWarning``) when a replay buffer of ``buffer_size`` agent-transitions is expected to
-    take ``expected_bytes`` once full, more than :data:`MEMORY_WARNING_FRACTION` of the available
-    memory (or :data:`MEMORY_WARNING_BYTES` where that is unknown); the warning states the bytes and
-    a ``buffer_size`` that would stay under that limit."""
+    take ``expected_bytes`` once full, more than :data:`MEMORY_WARNING_BYTES` or more than
+    :data:`MEMORY_WARNING_FRACTION` of the available memory, whichever is less; the warning states the
+    bytes and a ``buffer_size`` that would stay under that limit."""
     available = available_memory()
-    limit = MEMORY_WARNING_BYTES if available is None else int(MEMORY_WARNING_FRACTION * available)
+    share = None if available is None else int(MEMORY_WARNING_FRACTION * available)
+    limit = MEMORY_WARNING_BYTES if share is None else min(MEMORY_WARNING_BYTES, share)
     if expected_bytes <= limit:
         return
-    where = "" if available is None else f" of the {available / 2**30:.1f} GiB of memory available"
+    of_available = share is not None and share <= limit
+    where = f" of the {available / 2**30:.1f} GiB of memory available" if of_available else ""
     fitting = int(buffer_size * limit / expected_bytes)
     warnings.warn(
         f"The replay buffer of buffer_size={buffer_size} agent-transitions will take "
