@@ -316,7 +316,9 @@ class GraphBatch:
     Entries (``E = min(max_neighbors + 1, n_agents)`` per agent, see :func:`neighbor_entries`) are
     held in canonical order: ``targets`` ``(rows, E)`` (``rows = batch * n_agents``), ``positions``
     ``(rows, E)`` their list places, ``mask`` ``(rows, E)`` the entries taking part and ``columns``
-    ``(rows, E)`` the flat agent row of every entry (the agent itself where none takes part).
+    ``(rows, E)`` the flat agent row of every entry (the agent itself where none takes part). They are
+    computed on first use, so a network that never reads the neighbours (no communication) never
+    pays for them; the neighbours are validated at once.
 
     :param neighbors: ``(batch, n_agents, max_neighbors)`` agent indices within the same graph,
         ``-1`` = no entry; an agent listed several times is one neighbour.
@@ -329,18 +331,45 @@ class GraphBatch:
         self.rows = self.batch * self.n_agents
         self.n_groups = n_groups
         check_neighbors(neighbors, self.n_agents)
+        self.neighbors = neighbors
         self.list_width = neighbors.shape[2]
-        self.targets, self.positions, self.mask = neighbor_entries(neighbors, self.n_agents)
-        self.n_targets = self.rows if self.batch > 1 else self.rows + self.targets.shape[1]
-        own = torch.arange(self.rows, device=neighbors.device).unsqueeze(1)
-        self.columns = torch.where(self.mask, self.targets, own)
         self._patterns: dict[int, _Pattern] = {}
         self.group_rows: list[Tensor] | None = None
         self.group_inverse: Tensor | None = None
         self.row_groups: Tensor | None = None
-        self.column_groups: Tensor | None = None
         if n_groups > 1:
             self._prepare_groups(groups)
+
+    @functools.cached_property
+    def _entries(self) -> tuple[Tensor, Tensor, Tensor]:
+        return neighbor_entries(self.neighbors, self.n_agents)
+
+    @property
+    def targets(self) -> Tensor:
+        return self._entries[0]
+
+    @property
+    def positions(self) -> Tensor:
+        return self._entries[1]
+
+    @property
+    def mask(self) -> Tensor:
+        return self._entries[2]
+
+    @property
+    def n_targets(self) -> int:
+        """Columns of the attention patterns: the agents' rows, with one graph also dummy targets."""
+        return self.rows if self.batch > 1 else self.rows + self.targets.shape[1]
+
+    @functools.cached_property
+    def columns(self) -> Tensor:
+        own = torch.arange(self.rows, device=self.neighbors.device).unsqueeze(1)
+        return torch.where(self.mask, self.targets, own)
+
+    @functools.cached_property
+    def column_groups(self) -> Tensor | None:
+        """``(rows, E)`` the group of every entry (``None`` with one group)."""
+        return None if self.row_groups is None else self.row_groups[self.columns]
 
     def _prepare_groups(self, groups: Tensor | None) -> None:
         if groups is None or tuple(groups.shape) != (self.batch, self.n_agents):
@@ -354,7 +383,6 @@ class GraphBatch:
             raise ValueError(f"group ids must lie in [0, {self.n_groups - 1}].")
         groups = RowGroups(flat, self.n_groups)
         self.row_groups, self.group_rows, self.group_inverse = flat, groups.group_rows, groups.group_inverse
-        self.column_groups = flat[self.columns]  # (rows, E) group of every entry
 
     def block(self, first_graph: int, n_graphs: int) -> RowGroups | None:
         """The agent groups of the rows of graphs ``first_graph`` to ``first_graph + n_graphs - 1``
