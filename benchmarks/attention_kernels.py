@@ -9,6 +9,10 @@ outputs) with :class:`sb3_hgrn.common.attention.NeighborAttention` (sparse CSR p
 gather forms that copy every agent's keys and values per entry (``(rows, E, heads, head_dim)``): an
 einsum over advanced indexing, and ``index_select`` with batched matrix products. It prints the best
 of ``--repeats`` times in milliseconds and the largest difference of the gradients from the kernel's.
+
+A second table times the forward pass alone under ``torch.inference_mode`` (acting, the target
+network): the kernel through its autograd function and the bare computation that
+:func:`~sb3_hgrn.common.attention.neighbor_attention` runs when no gradient is recorded.
 """
 
 from __future__ import annotations
@@ -20,7 +24,7 @@ from collections.abc import Callable
 
 import torch
 
-from sb3_hgrn.common.attention import GraphBatch, NeighborAttention
+from sb3_hgrn.common.attention import GraphBatch, NeighborAttention, neighbor_attention
 
 
 def best_ms(step: Callable[[], None], repeats: int) -> float:
@@ -83,6 +87,22 @@ def compare(batch: int, args: argparse.Namespace, generator: torch.Generator) ->
     return f"| {batch} | " + " | ".join(f"{ms:.2f}" for ms in times) + f" | {difference:.1e} |"
 
 
+def compare_without_grad(batch: int, args: argparse.Namespace, generator: torch.Generator) -> str:
+    """One row of the forward-only table: the autograd function against the bare computation."""
+    neighbors = torch.randint(-1, args.agents, (batch, args.agents, args.neighbors), generator=generator)
+    graphs = GraphBatch(neighbors)
+    query, key, value = (
+        torch.randn(batch * args.agents, args.heads, args.head_dim, generator=generator) for _ in range(3)
+    )
+    pattern, segments = graphs.pattern(args.heads), graphs.segments(False)
+    with torch.inference_mode():
+        through_function = best_ms(
+            lambda: NeighborAttention.apply(query, key, value, pattern, segments), args.repeats
+        )
+        bare = best_ms(lambda: neighbor_attention(query, key, value, pattern, segments), args.repeats)
+    return f"| {batch} | {through_function:.3f} | {bare:.3f} |"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -103,6 +123,11 @@ def main() -> None:
     print("|---:|---:|---:|---:|---:|")
     for batch in args.batches:
         print(compare(batch, args, generator), flush=True)
+    print("\nForward only, no gradient recorded (torch.inference_mode)")
+    print("| graphs | autograd function (ms) | bare computation (ms) |")
+    print("|---:|---:|---:|")
+    for batch in args.batches:
+        print(compare_without_grad(batch, args, generator), flush=True)
 
 
 if __name__ == "__main__":

@@ -397,6 +397,29 @@ def test_hgat_gives_zero_message_from_a_group_without_neighbours(hetero_layer):
     torch.testing.assert_close(messages[1, 0], own_value)  # it attends to itself only
 
 
+def test_hgat_without_grad_matches_with_grad(hetero_layer):
+    torch.manual_seed(3)
+    x = torch.randn(1, 4, IN_DIM, dtype=torch.double)
+    graph = GraphBatch(GROUP_NEIGHBORS, GROUPS, n_groups=2)
+    with torch.inference_mode():
+        out, weights = hetero_layer(x, graph, return_attention=True)
+    expected, expected_weights = hetero_layer(x, graph, return_attention=True)
+    assert expected.grad_fn is not None
+    torch.testing.assert_close(out, expected.detach())
+    torch.testing.assert_close(weights, expected_weights)
+
+
+def test_attention_without_grad_skips_the_autograd_function(layer, x, monkeypatch):
+    def refuse(*_args):
+        raise AssertionError("the autograd function ran")
+
+    monkeypatch.setattr(NeighborAttention, "apply", refuse)
+    with torch.no_grad():
+        layer(x, NEIGHBORS)
+    with pytest.raises(AssertionError, match="the autograd function ran"):
+        layer(x, NEIGHBORS)  # recording a gradient needs it
+
+
 def test_hgat_gradients_match_hand_computed(hetero_layer):
     torch.manual_seed(4)
     x = torch.randn(1, 4, IN_DIM, dtype=torch.double, requires_grad=True)

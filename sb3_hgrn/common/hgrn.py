@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from sb3_hgrn.common.attention import GraphBatch, NeighborAttention, RowGroups, as_graph_batch
+from sb3_hgrn.common.attention import GraphBatch, RowGroups, as_graph_batch, neighbor_attention
 from sb3_hgrn.validation import is_integer
 
 PAPER_SIZE: dict = {"hidden_dim": 256, "n_heads": 4, "head_dim": 256}
@@ -152,7 +152,7 @@ class GraphAttention(nn.Module):
         segments = graph.segments(self.across_groups)
         dtype = torch.promote_types(query.dtype, torch.float32)  # bfloat16 under autocast -> float32
         with torch.autocast(x.device.type, enabled=False):  # the sparse kernels run in full precision
-            mixed, weights = NeighborAttention.apply(
+            mixed, weights = neighbor_attention(
                 query.to(dtype), key.to(dtype), value.to(dtype), graph.pattern(self.n_heads), segments
             )
         out = self.output(mixed.reshape(batch, n_agents, -1), graph=graph)
