@@ -358,10 +358,6 @@ class LosingRay:
             self.ray.cancel(ref, force=True)
 
 
-@pytest.mark.xfail(
-    reason="open: since the module split the Ray task's run does not lock its folder within 300 s here",
-    strict=False,
-)
 @pytest.mark.parametrize("lost", [False, True], ids=["interrupted", "interrupt-lost"])
 def test_a_stopped_ray_task_stops_its_run(local_ray, busy_cores, tmp_path, lost):
     from sb3_hgrn.experiments.backends import RayBackend
