@@ -7,8 +7,9 @@ For each env and preset it builds an untrained model of the run's settings (as `
 ENV --preset PRESET`` resolves them) on the budget's env copies, resets the env and times ``--calls``
 calls of ``model.predict`` that carry the recurrent state from one call to the next, on the same
 observations, ``--repeats`` times; the best time per call is printed. One torch thread.
-``--compile`` also times the same calls with the deployed network's forward under ``torch.compile``
-and prints the seconds its first call took (the compilation).
+``--compile`` also times the same calls with the networks built with ``compile_network=True`` (their
+encoders and communication under ``torch.compile``) and prints the seconds its first call took (the
+compilation).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import time
 
 import torch as th
 
+from sb3_hgrn.common.hgrn import HGRN
 from sb3_hgrn.experiments.config import resolve_config
 from sb3_hgrn.experiments.runs import make_env, new_model
 
@@ -43,8 +45,9 @@ def predict_row(env_name: str, preset: str, args: argparse.Namespace) -> str:
     eager_ms = best_call_ms(model, obs, args.calls, args.repeats)
     row = f"| {env_name} | {preset} | {env.num_envs} | {eager_ms:.2f} |"
     if args.compile:
-        network = model.policy.deployed_network
-        network.forward = th.compile(network.forward)
+        for module in model.policy.modules():  # as policy_kwargs=dict(compile_network=True) builds them
+            if isinstance(module, HGRN):
+                module.compile_options = {}
         start = time.perf_counter()
         model.predict(obs)
         compile_s = time.perf_counter() - start

@@ -786,3 +786,88 @@ def test_unroll_equals_stepping_the_network_one_step_at_a_time(recurrent, group_
     expected = loss_and_gradients(torch.cat(stepped))
     for ours, theirs in zip(loss_and_gradients(unrolled), expected, strict=True):
         torch.testing.assert_close(ours, theirs, atol=1e-5, rtol=1e-5)
+
+
+COMPILE_FOR_TESTS = {"backend": "aot_eager"}
+"""``torch.compile`` traced into one graph and run without code generation: what the library's
+compiled path decides (the gathered attention, the graph capture) without a C++ compiler's time."""
+
+
+@pytest.mark.parametrize(
+    "communication, group_n_actions, mixed_precision",
+    [
+        ("hgat", None, False),
+        ("hgat", [4, 2, 3], False),
+        ("gat", [4, 2], False),
+        ("mean", [4, 3], False),
+        ("none", None, False),
+        ("hgat", [4, 2], True),
+    ],
+)
+def test_the_compiled_network_equals_the_eager_one(communication, group_n_actions, mixed_precision):
+    """``compile_network`` (the attention gathered, under ``torch.compile``) gives the eager network's
+    outputs, states and parameter gradients, with one and several agent groups, an agent without a
+    neighbour of some group, repeated and empty list entries."""
+    torch.manual_seed(0)
+    kwargs = dict(hidden_dim=8, n_heads=2, group_n_actions=group_n_actions, mixed_precision=mixed_precision)
+    traced = []
+
+    def backend(graph_module, example_inputs):
+        traced.append(graph_module)
+        return torch._dynamo.lookup_backend(COMPILE_FOR_TESTS["backend"])(graph_module, example_inputs)
+
+    eager = HGRN(6, 4, communication=communication, **kwargs)
+    compiled = HGRN(6, 4, communication=communication, compile_network={"backend": backend}, **kwargs)
+    compiled.load_state_dict(eager.state_dict())
+    n_groups = eager.n_groups
+    obs, hidden = torch.randn(3, 7, 6), torch.randn(3, 7, 8)
+    neighbors = torch.randint(-1, 7, (3, 7, 4))
+    neighbors[0, 0] = -1
+    neighbors[0, 1, :2] = 2
+    groups = None if n_groups == 1 else torch.randint(0, n_groups, (3, 7))
+    weights = torch.randn(3, 7, 4)
+    results = []
+    for net in (eager, compiled):
+        outputs, state = net(obs, GraphBatch(neighbors, groups, n_groups), hidden)
+        valid = outputs > MASKED_OUTPUT
+        loss = (outputs * weights * valid).sum() + state.sum()
+        results.append([outputs, state, *torch.autograd.grad(loss, list(net.parameters()))])
+    assert traced, "the compiled network ran eagerly"
+    tolerance = dict(atol=2e-2, rtol=2e-2) if mixed_precision else dict(atol=1e-5, rtol=1e-5)
+    for ours, theirs in zip(results[1], results[0], strict=True):
+        torch.testing.assert_close(ours, theirs, **tolerance)
+
+
+def test_compiled_networks_each_run_with_their_own_parameters():
+    """Networks of one shape share the compiled code, not its parameters: each gives what its eager
+    twin gives, acting (no gradient) and training."""
+    nets = []
+    for seed in (0, 1):
+        torch.manual_seed(seed)
+        eager = HGRN(6, 4, hidden_dim=8, n_heads=2)
+        compiled = HGRN(6, 4, hidden_dim=8, n_heads=2, compile_network=COMPILE_FOR_TESTS)
+        compiled.load_state_dict(eager.state_dict())
+        nets.append((eager, compiled))
+    obs, hidden, neighbors = torch.randn(2, 5, 6), torch.zeros(2, 5, 8), torch.randint(-1, 5, (2, 5, 3))
+    for grad in (False, True):
+        with torch.set_grad_enabled(grad):
+            for eager, compiled in nets:
+                torch.testing.assert_close(
+                    compiled(obs, neighbors, hidden)[0], eager(obs, neighbors, hidden)[0]
+                )
+    assert not torch.allclose(nets[0][0](obs, neighbors, hidden)[0], nets[1][0](obs, neighbors, hidden)[0])
+
+
+@pytest.mark.parametrize("value", [1, "yes", {3: "x"}])
+def test_compile_network_rejects_what_torch_compile_does_not_take(value):
+    with pytest.raises(ValueError, match="compile_network must be True, False or a dict"):
+        HGRN(6, 4, compile_network=value)
+
+
+def test_a_network_that_cannot_compile_says_why():
+    def broken_backend(graph_module, example_inputs):
+        raise OSError("no C++ compiler found")
+
+    net = HGRN(6, 4, hidden_dim=8, n_heads=2, compile_network={"backend": broken_backend})
+    with pytest.raises(RuntimeError, match="could not compile the network: OSError.*no C\\+\\+ compiler"):
+        net(torch.randn(1, 3, 6), torch.randint(-1, 3, (1, 3, 2)), torch.zeros(1, 3, 8))

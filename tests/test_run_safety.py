@@ -28,6 +28,7 @@ from sb3_hgrn.common import saved_controllers
 from sb3_hgrn.common.checks import MAX_ABS_REWARD, observation_problem
 from sb3_hgrn.common.evaluation import RandomGraphPolicy
 from sb3_hgrn.common.files import DamagedModelFileError, save_model_atomically, write_text_atomically
+from sb3_hgrn.common.hgrn import HGRN
 from sb3_hgrn.common.off_policy import GraphOffPolicyAlgorithm
 from sb3_hgrn.experiments.callbacks import (
     AtomicCheckpointCallback,
@@ -908,3 +909,25 @@ def test_resume_skips_a_damaged_replay_buffer(tmp_path):
     with pytest.warns(UserWarning, match="Skipping the replay buffer .*model_replay_buffer_200_steps.pkl"):
         assert main(train_args(tmp_path, 200, "--save-replay-buffer")) == 0
     assert json.loads((folder / "eval.json").read_text())["resumed_from"] == "model_200_steps.zip"
+
+
+@pytest.mark.parametrize("algorithm", [SoftHGRN, SACHGRN])
+def test_a_compiled_model_trains_saves_and_loads_compiled(algorithm, small_env, tmp_path):
+    """``policy_kwargs=dict(compile_network=...)`` trains, is saved with the option, loads compiled,
+    and acts as the same model with its networks eager."""
+    model = algorithm(
+        "GraphPolicy", small_env, learning_starts=10, batch_size=4, train_freq=2, seed=0,
+        policy_kwargs={"hidden_dim": 8, "n_heads": 2, "compile_network": {"backend": "aot_eager"}},
+    )  # fmt: skip
+    model.learn(60)
+    model.save(tmp_path / "model.zip")
+    loaded = algorithm.load(tmp_path / "model.zip", env=small_env)
+    networks = [module for module in loaded.policy.modules() if isinstance(module, HGRN)]
+    assert networks and all(network.compile_options == {"backend": "aot_eager"} for network in networks)
+    obs = small_env.reset()
+    compiled_actions, compiled_state = loaded.predict(obs, deterministic=True)
+    for network in networks:
+        network.compile_options = None
+    eager_actions, eager_state = loaded.predict(obs, deterministic=True)
+    np.testing.assert_array_equal(compiled_actions, eager_actions)
+    np.testing.assert_allclose(compiled_state, eager_state, atol=1e-5)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import math
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -155,12 +156,43 @@ class GraphAttention(nn.Module):
             mixed, weights = neighbor_attention(
                 query.to(dtype), key.to(dtype), value.to(dtype), graph.pattern(self.n_heads), segments
             )
-        out = self.output(mixed.reshape(batch, n_agents, -1), graph=graph)
-        if self.n_messages == 1:
-            out = F.relu(out)
+        out = self._mapped(mixed, x, graph)
         if return_attention:
             return out, graph.list_weights(weights).reshape(batch, n_agents, self.n_heads, -1)
         return out
+
+    def gathered(
+        self, x: Tensor, graph: GraphBatch, columns: Tensor, mask: Tensor, segments: Sequence[Tensor]
+    ) -> Tensor:
+        """:meth:`forward` with every entry's keys and values gathered (``(rows, E, n_heads,
+        head_dim)``) instead of the sparse kernel: no sparse tensor, so ``torch.compile`` can take the
+        whole network as one graph (see :class:`HGRN`'s ``compile_network``).
+
+        :param columns: ``(rows, E)`` the graph's :attr:`GraphBatch.columns`.
+        :param mask: ``(rows, E)`` its :attr:`GraphBatch.mask` (unused: the segments hold it).
+        :param segments: its :meth:`GraphBatch.segments` for this layer.
+        :return: ``(batch, n_agents, out_dim)``.
+        """
+        query, key, value = self.project(x, graph)
+        dtype = torch.promote_types(query.dtype, torch.float32)
+        with torch.autocast(x.device.type, enabled=False):  # in full precision, as the sparse kernel
+            query, key, value = query.to(dtype), key.to(dtype), value.to(dtype)
+            keys, values = key[columns], value[columns]  # (rows, E, n_heads, head_dim)
+            logits = (query.unsqueeze(1) * keys).sum(-1) * self.head_dim**-0.5  # (rows, E, n_heads)
+            messages = []
+            for segment in segments:
+                weights = logits.masked_fill(~segment.unsqueeze(-1), -math.inf).softmax(dim=1)
+                if len(segments) > 1:  # a row without entries in a segment: its message is zero
+                    weights = weights.nan_to_num(0.0)
+                messages.append((weights.unsqueeze(-1) * values).sum(1))  # (rows, n_heads, head_dim)
+            mixed = torch.stack(messages, dim=1)
+        return self._mapped(mixed, x, graph)
+
+    def _mapped(self, mixed: Tensor, x: Tensor, graph: GraphBatch) -> Tensor:
+        """The output map of the messages ``(rows, n_messages, n_heads, head_dim)``:
+        ``(batch, n_agents, out_dim)``."""
+        out = self.output(mixed.reshape(*x.shape[:2], -1), graph=graph)
+        return F.relu(out) if self.n_messages == 1 else out
 
 
 class GroupMessageMap(nn.Module):
@@ -208,10 +240,17 @@ class MeanCommunication(nn.Module):
         """:param x: ``(batch, n_agents, in_dim)``; :param graph: :class:`GraphBatch` or neighbour
         lists ``(batch, n_agents, max_neighbors)``. :return: ``(batch, n_agents, out_dim)``."""
         graph = as_graph_batch(graph)
+        return self.gathered(x, graph, graph.columns, graph.mask, ())
+
+    def gathered(
+        self, x: Tensor, graph: GraphBatch, columns: Tensor, mask: Tensor, segments: Sequence[Tensor]
+    ) -> Tensor:
+        """:meth:`forward` with the graph's ``columns`` and ``mask`` ``(rows, E)`` given (the
+        ``segments`` are unused), as :meth:`GraphAttention.gathered`."""
         batch, n_agents, in_dim = x.shape
-        own = torch.arange(graph.rows, device=x.device).unsqueeze(1)
-        others = (graph.mask & (graph.columns != own)).unsqueeze(-1).to(x.dtype)  # (rows, E, 1)
-        gathered = x.reshape(-1, in_dim).index_select(0, graph.columns.reshape(-1))
+        own = torch.arange(batch * n_agents, device=x.device).unsqueeze(1)
+        others = (mask & (columns != own)).unsqueeze(-1).to(x.dtype)  # (rows, E, 1)
+        gathered = x.reshape(-1, in_dim).index_select(0, columns.reshape(-1))
         total = (gathered.reshape(*others.shape[:2], in_dim) * others).sum(1)
         mean = total / others.sum(1).clamp(min=1.0)
         joined = torch.cat([x, mean.reshape(batch, n_agents, in_dim)], dim=-1)
@@ -242,6 +281,12 @@ class SelfOnly(nn.Module):
         :return: ``(batch, n_agents, out_dim)``."""
         graph = graph if isinstance(graph, GraphBatch) else None
         return F.relu(self.output(F.relu(self.value(x, graph=graph)), graph=graph))
+
+    def gathered(
+        self, x: Tensor, graph: GraphBatch, columns: None, mask: None, segments: Sequence[Tensor]
+    ) -> Tensor:
+        """:meth:`forward` (no entries are read), as :meth:`GraphAttention.gathered`."""
+        return self.forward(x, graph)
 
 
 class HGRN(nn.Module):
@@ -275,6 +320,14 @@ class HGRN(nn.Module):
         mapping observations ``(rows, *obs_shape)`` float32 to ``(rows, features_dim)``, with an
         integer attribute ``features_dim`` (SB3's ``BaseFeaturesExtractor``). ``None``: the
         flattened observation is the encoder's input.
+    :param compile_network: run :meth:`features` (the encoder and both communication hops, the bulk
+        of the network's work) under ``torch.compile``: ``True`` with its defaults, or a dict of its
+        keyword arguments (``{"mode": "max-autotune"}``, ``{"backend": "aot_eager"}``). The
+        attention then gathers every entry's keys and values (:meth:`GraphAttention.gathered`)
+        instead of the sparse kernel, which the compiler cannot take. The first call of every new
+        input shape compiles (about 20 s on a laptop CPU with the default backend, which needs a C++
+        compiler), later calls run the compiled code: worth it for long runs
+        (``benchmarks/compiled_network.py``). ``False``: eager.
     """
 
     def __init__(
@@ -289,8 +342,10 @@ class HGRN(nn.Module):
         group_n_actions: Sequence[int] | None = None,
         mixed_precision: bool = False,
         features_extractor: Callable[[], nn.Module] | None = None,
+        compile_network: bool | dict = False,
     ) -> None:
         super().__init__()
+        self.compile_options = compile_options(compile_network)
         if communication not in COMMUNICATIONS:
             raise ValueError(f"communication must be one of {COMMUNICATIONS}, got {communication!r}")
         self.obs_shape = (int(obs_dim),) if isinstance(obs_dim, int) else tuple(int(n) for n in obs_dim)
@@ -364,11 +419,33 @@ class HGRN(nn.Module):
         """The skip concat ``[encoded, hop 1, hop 2]`` ``(batch, n_agents, 3 * hidden_dim)`` of
         observations ``(batch, n_agents, *obs_shape)``: everything before the memory, so it can be
         computed for many steps of a sequence at once."""
+        if self.compile_options is not None:
+            return self._compiled_features(obs, graph)
         with self._precision(obs.device):
             encoded = self.encode(obs, graph)
             hop1 = self.comm1(encoded, graph)
             hop2 = self.comm2(hop1, graph)
             return torch.cat([encoded, hop1, hop2], dim=-1)
+
+    def _compiled_features(self, obs: Tensor, graph: GraphBatch) -> Tensor:
+        """:meth:`features` through the compiled gather form; the graph's entries are computed first,
+        outside the compiled code."""
+        columns = mask = None
+        segments: tuple[Tensor, ...] = ()
+        if isinstance(self.comm1, (GraphAttention, MeanCommunication)):
+            columns, mask = graph.columns, graph.mask
+        if isinstance(self.comm1, GraphAttention):
+            segments = tuple(graph.segments(self.comm1.across_groups))
+        compiled = _compiled_gathered_features(self.compile_options)
+        try:
+            with torch._dynamo.config.patch(recompile_limit=RECOMPILE_LIMIT):
+                return compiled(self, obs, graph, columns, mask, segments)
+        except torch._dynamo.exc.BackendCompilerFailed as error:
+            raise RuntimeError(
+                f"compile_network={self.compile_options or True} could not compile the network: "
+                f"{error.inner_exception!r}. torch.compile's default backend needs a working C++ "
+                "compiler; compile_network=False runs the network eagerly."
+            ) from error
 
     def remember(self, features: Tensor, hidden: Tensor, graph: GraphBatch | RowGroups) -> Tensor:
         """The GRU step: the new state ``(batch, n_agents, hidden_dim)`` from :meth:`features` and the
@@ -460,6 +537,53 @@ def checked_features_dim(extractor: nn.Module, obs_shape: tuple[int, ...]) -> in
             f"*obs_shape) to {got}; it must return (batch, features_dim) = (2, {features_dim})."
         )
     return features_dim
+
+
+def compile_options(compile_network: bool | dict) -> dict | None:
+    """The ``torch.compile`` keyword arguments of HGRN's ``compile_network`` (``None``: eager)."""
+    if compile_network is False:
+        return None
+    if compile_network is True:
+        return {}
+    if isinstance(compile_network, dict) and all(isinstance(key, str) for key in compile_network):
+        return dict(compile_network)
+    raise ValueError(
+        f"compile_network must be True, False or a dict of torch.compile's keyword arguments, got "
+        f"{compile_network!r}."
+    )
+
+
+def _gathered_features(
+    network: HGRN,
+    obs: Tensor,
+    graph: GraphBatch,
+    columns: Tensor | None,
+    mask: Tensor | None,
+    segments: tuple[Tensor, ...],
+) -> Tensor:
+    """:meth:`HGRN.features` of ``network`` with the communication layers' ``gathered`` forms."""
+    with network._precision(obs.device):
+        encoded = network.encode(obs, graph)
+        hop1 = network.comm1.gathered(encoded, graph, columns, mask, segments)
+        hop2 = network.comm2.gathered(hop1, graph, columns, mask, segments)
+        return torch.cat([encoded, hop1, hop2], dim=-1)
+
+
+_COMPILED_FEATURES: dict[str, Callable[..., Tensor]] = {}
+
+RECOMPILE_LIMIT = 64
+"""Compiled versions of :func:`_gathered_features` torch keeps per process (its default, 8, is
+reached by a process that builds a few models: every network shape, input shape and gradient mode
+is one); past it the gather form would run uncompiled, slower than the sparse kernel."""
+
+
+def _compiled_gathered_features(options: dict[str, Any]) -> Callable[..., Tensor]:
+    """One compiled :func:`_gathered_features` per set of ``torch.compile`` options, shared by every
+    network (it takes the network as an argument, so each network runs with its own parameters)."""
+    key = repr(sorted(options.items()))
+    if key not in _COMPILED_FEATURES:
+        _COMPILED_FEATURES[key] = torch.compile(_gathered_features, **options)
+    return _COMPILED_FEATURES[key]
 
 
 def _make_communication(

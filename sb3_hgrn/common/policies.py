@@ -42,7 +42,7 @@ def check_graph_spaces(observation_space: spaces.Space, action_space: spaces.Spa
 
 NETWORK_OPTIONS = (
     "hidden_dim", "n_heads", "head_dim", "communication", "recurrent", "mixed_precision",
-    "features_extractor_class", "features_extractor_kwargs",
+    "features_extractor_class", "features_extractor_kwargs", "compile_network",
 )  # fmt: skip
 """The arguments of :class:`GraphPolicy` that shape its networks (:meth:`GraphPolicy.make_network`)."""
 SPACE_ARGUMENTS = ("observation_space", "action_space", "lr_schedule")
@@ -117,6 +117,8 @@ class GraphPolicy(BasePolicy):
     :param communication: ``"hgat"`` (graph attention), ``"mean"`` (CommNet mean) or ``"none"``.
     :param recurrent: use the GRU memory.
     :param mixed_precision: bfloat16 matrix products in the networks (see :class:`HGRN`).
+    :param compile_network: run the networks' encoders and communication under ``torch.compile``
+        (``True``, or a dict of its keyword arguments; see :class:`HGRN`).
     :param stochastic: sample actions from the policy; ``False`` acts greedily (the ``-S`` variants).
     :param alpha_log_space: learn ``log(alpha)`` instead of the temperature alpha itself.
     :param group_n_actions: action count of every agent group (set by the algorithm from a
@@ -170,6 +172,7 @@ class GraphPolicy(BasePolicy):
         optimizer_kwargs: dict[str, Any] | None = None,
         normalize_images: bool = False,
         average_tau: float | None = 0.002,
+        compile_network: bool | dict = False,
     ):
         check_graph_spaces(observation_space, action_space)
         super().__init__(
