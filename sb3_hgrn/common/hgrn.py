@@ -326,8 +326,8 @@ class HGRN(nn.Module):
         attention then gathers every entry's keys and values (:meth:`GraphAttention.gathered`)
         instead of the sparse kernel, which the compiler cannot take. The first call of every new
         input shape compiles (about 20 s on a laptop CPU with the default backend, which needs a C++
-        compiler), later calls run the compiled code: worth it for long runs
-        (``benchmarks/compiled_network.py``). ``False``: eager.
+        compiler), later calls run the compiled code: ``predict`` is faster, a whole training run
+        was not (``benchmarks/compiled_network.py``, ``docs/results_speed.md``). ``False``: eager.
     """
 
     def __init__(
