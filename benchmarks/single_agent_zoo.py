@@ -2,7 +2,7 @@
 
 Run: nice -n 10 python benchmarks/single_agent_zoo.py --envs CartPole-v1 --seeds 5 --threads 1
      [--algorithms soft_dqn discrete_sac dqn ppo] [--results benchmarks/single_agent_zoo.json]
-     [--timesteps 200000]
+     [--timesteps 200000] [--param target_entropy_ratio=0.25 --variant ratio0.25]
 
 Every algorithm trains each env for the RL Zoo's DQN budget (``n_timesteps`` of rl_zoo3's
 ``hyperparams/dqn.yml``, read from the installed ``rl-zoo3`` package: ``pip install -e ".[zoo]"``) with
@@ -18,6 +18,10 @@ time per 100k env steps (training only), with its ratio to DQN's.
 on a CPU); the schedules keep their fractions of the budget, except the MinAtar paper's DQN
 exploration, which keeps its 100k frames. Such runs are kept under ``env@N/algorithm/seed``, apart from
 the full budget's.
+
+``--param KEY=VALUE ...`` overrides settings of SoftDQN and DiscreteSAC (as the CLI's ``--param``; dotted
+keys reach into ``policy_kwargs``); such runs need a ``--variant NAME`` and are kept under
+``env/algorithm:NAME/seed``, apart from those of the packaged settings.
 
 Runs go one at a time, seed-major (every algorithm's seed 0 first), and each finished run is added
 to the ``--results`` JSON file at once (written to a temporary file, then renamed), so a killed
@@ -51,6 +55,7 @@ from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 from sb3_hgrn.common.files import write_text_atomically
 from sb3_hgrn.common.torch_layers import AgentViewCNN
 from sb3_hgrn.envs.registration import ensure_registered
+from sb3_hgrn.experiments.config import parse_assignments
 from sb3_hgrn.experiments.single_agent import SINGLE_AGENT_PRESETS, env_settings, make_model
 from sb3_hgrn.experiments.stats import iqm_interval
 
@@ -144,8 +149,11 @@ def literal_call_kwargs(text: str) -> dict[str, Any]:
     return {keyword.arg: ast.literal_eval(keyword.value) for keyword in call.keywords}
 
 
-def train_once(algorithm: str, env: str, seed: int, timesteps: int, eval_episodes: int) -> dict[str, Any]:
-    """Train one run and evaluate its greedy policy: its score, steps and training wall time."""
+def train_once(
+    algorithm: str, env: str, seed: int, timesteps: int, eval_episodes: int, params: dict[str, Any]
+) -> dict[str, Any]:
+    """Train one run (SoftDQN and DiscreteSAC with ``params`` over their settings) and evaluate its
+    greedy policy: its score, steps and training wall time."""
     eval_env = None  # a Monitor env reset with seed + 1000, unless the model needs its own (PPO's)
     if algorithm == "dqn":
         settings = zoo_settings("dqn", env, timesteps)
@@ -154,7 +162,7 @@ def train_once(algorithm: str, env: str, seed: int, timesteps: int, eval_episode
     elif algorithm in ZOO_ALGORITHMS:
         model, eval_env = make_zoo_model(algorithm, env, seed)
     else:
-        model = make_model(algorithm, env, env_settings(algorithm, env), seed)
+        model = make_model(algorithm, env, env_settings(algorithm, env, params), seed)
     start = time.perf_counter()
     model.learn(timesteps)
     wall_time = time.perf_counter() - start
@@ -171,7 +179,8 @@ def load_results(path: Path) -> dict[str, dict[str, Any]]:
 
 
 def table_rows(results: dict[str, dict[str, Any]], envs: list[str], algorithms: list[str]) -> list[str]:
-    """Markdown rows: env, algorithm, seeds, IQM [95 % CI], wall s per 100k env steps, ratio to DQN."""
+    """Markdown rows: env, algorithm (``name:variant`` for a variant's runs), seeds, IQM [95 % CI],
+    wall s per 100k env steps, ratio to DQN."""
     rows = []
     for env in envs:
         per_algorithm = {
@@ -210,7 +219,15 @@ def main() -> None:
     parser.add_argument(
         "--timesteps", type=int, help="env steps of every run (default: the Zoo DQN's budget)"
     )
+    parser.add_argument("--param", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="settings of SoftDQN and DiscreteSAC over the packaged ones")  # fmt: skip
+    parser.add_argument("--variant", help="name of the --param runs, kept as env/algorithm:NAME/seed")
     args = parser.parse_args()
+    params = parse_assignments(args.param)
+    if bool(params) != bool(args.variant):
+        parser.error("--param and --variant go together: name the runs whose settings differ")
+    if params and set(args.algorithms) & set(ZOO_ALGORITHMS):
+        parser.error(f"--param changes only {', '.join(SINGLE_AGENT_PRESETS)}; drop dqn and ppo")
     th.set_num_threads(args.threads)
     path = Path(args.results)
     results = load_results(path)
@@ -221,16 +238,19 @@ def main() -> None:
         timesteps = args.timesteps or int(zoo_settings("dqn", env)["n_timesteps"])
         for seed in range(args.seeds):
             for algorithm in args.algorithms:
-                key = f"{label}/{algorithm}/{seed}"
+                name = f"{algorithm}:{args.variant}" if args.variant else algorithm
+                key = f"{label}/{name}/{seed}"
                 if key in results:
                     continue
-                results[key] = train_once(algorithm, env, seed, timesteps, args.eval_episodes)
+                results[key] = train_once(algorithm, env, seed, timesteps, args.eval_episodes, params)
                 write_text_atomically(path, json.dumps(results, indent=1))
                 print(f"{key}: {results[key]}", flush=True)
     print(f"\n{args.threads} torch thread(s), greedy return over {args.eval_episodes} episodes")
     print("| env | algorithm | seeds | IQM [95 % CI] | wall s / 100k steps | x DQN |")
     print("| --- | --- | --- | --- | --- | --- |")
-    print("\n".join(table_rows(results, labels, args.algorithms)))
+    variants = [f"{algorithm}:{args.variant}" for algorithm in args.algorithms] if args.variant else []
+    names = list(dict.fromkeys([*args.algorithms, "dqn", *variants]))  # beside the packaged settings' runs
+    print("\n".join(table_rows(results, labels, names)))
 
 
 if __name__ == "__main__":
