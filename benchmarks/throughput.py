@@ -8,7 +8,9 @@ Prints, for Surviving with ``--agents`` agents:
 - collection steps/s with the policy (1 and 4 env copies, no training);
 - per network size: gradient updates/s of ``SoftHGRN.train`` and the bare network time of the same
   batch (target forward + forward + backward + optimiser step); their ratio is the learner overhead;
-- bytes per replay row and the resident memory of a filled ``--buffer-rows`` buffer, and peak RSS.
+- bytes per replay row and the resident memory of a filled ``--buffer-rows`` buffer (measured first:
+  once learning has started, freed memory stays with the process, ``sb3_hgrn.common.memory``), and
+  peak RSS. ``SB3_HGRN_KEEP_FREED_MEMORY=0 python benchmarks/throughput.py`` runs without that.
 
 With 100 agents each figure the original code was measured at on a 2-core CPU (:data:`ORIGINAL`) is
 set beside it as a speed-up: the env alone, collecting with 1 copy, and the paper-size update of 128
@@ -189,12 +191,13 @@ def main() -> None:
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     print(f"Surviving, {args.agents} agents, torch {th.__version__}, {args.threads} threads, {args.device}")
+    for size in args.sizes:  # before any learning: freed memory is kept from then on
+        buffer_memory(args.agents, size, args.buffer_rows)
     env_rates(args.agents, args.env_steps)
     collection_rates(args.agents, args.collect_steps, args.device)
     for size in args.sizes:
         for batch_size in args.batch_sizes:
             update_rates(args.agents, size, batch_size, args.updates, args.device)
-        buffer_memory(args.agents, size, args.buffer_rows)
     print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB")
 
 

@@ -43,6 +43,7 @@ from sb3_hgrn.common.files import (
     saved_policy_module,
 )
 from sb3_hgrn.common.hgrn import HGRN
+from sb3_hgrn.common.memory import keep_freed_memory
 from sb3_hgrn.common.policies import GraphPolicy, check_graph_spaces, check_policy_kwargs
 from sb3_hgrn.common.safe_load import add_plain_record, read_saved_pickle, saved_entries, write_zip
 from sb3_hgrn.common.temperature import TemperatureLearner
@@ -733,6 +734,8 @@ class GraphOffPolicyAlgorithm(AlgorithmNamedRuns, TemperatureLearner, OffPolicyA
                      progress_bar=False):  # fmt: skip
         if self.replay_buffer is None:
             self._make_replay_buffer()
+        if self.device.type == "cpu":
+            keep_freed_memory()  # large tensors of a gradient step reuse memory instead of faulting it in
         reset = reset_num_timesteps or self._last_obs is None
         result = super()._setup_learn(
             total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar
