@@ -14,7 +14,8 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from sb3_hgrn import DiscreteSAC, SoftDQN
 from sb3_hgrn.cli import main
 from sb3_hgrn.common import single_agent
-from sb3_hgrn.common.soft_math import sac_next_value, soft_value
+from sb3_hgrn.common.soft_math import q_regression_loss, sac_next_value, soft_value
+from sb3_hgrn.soft_dqn import soft_dqn
 from tests.toy_envs import prefer_action
 
 ALGORITHMS = {"SoftDQN": SoftDQN, "DiscreteSAC": DiscreteSAC}
@@ -265,6 +266,30 @@ def test_rejects_action_spaces_other_than_discrete(name, env_class, kind):
 def test_discrete_sac_names_bad_options(options, message):
     with pytest.raises(ValueError, match=message):
         DiscreteSAC("MlpPolicy", "CartPole-v1", **options)
+
+
+def test_q_regression_losses():
+    """Squared error, or Huber's (half the square up to 1, then linear), over the masked entries."""
+    q_values = th.tensor([[1.0, 2.0], [0.0, 4.0], [7.0, 7.0]])
+    actions = th.tensor([[1], [1], [0]])
+    target, mask = th.tensor([1.5, 1.0, 0.0]), th.tensor([1.0, 1.0, 0.0])  # errors 0.5, 3 (and 7 masked)
+    assert q_regression_loss(q_values, actions, target, mask).item() == pytest.approx((0.25 + 9.0) / 2)
+    huber = q_regression_loss(q_values, actions, target, mask, "huber").item()
+    assert huber == pytest.approx((0.125 + 2.5) / 2)
+
+
+def test_soft_dqn_regresses_with_its_q_loss(monkeypatch):
+    used = []
+
+    def recording_loss(*args):
+        used.append(args[-1])
+        return q_regression_loss(*args)
+
+    monkeypatch.setattr(soft_dqn, "q_regression_loss", recording_loss)
+    SoftDQN("MlpPolicy", "CartPole-v1", q_loss="huber", learning_starts=32, seed=0).learn(64)
+    assert used and set(used) == {"huber"}
+    with pytest.raises(ValueError, match="q_loss must be one of 'mse', 'huber', got 'l1'"):
+        SoftDQN("MlpPolicy", "CartPole-v1", q_loss="l1")
 
 
 @pytest.mark.parametrize("behaviour_policy, preferred", [("actor", 0), ("critic", 1)])

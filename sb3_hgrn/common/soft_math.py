@@ -23,6 +23,9 @@ BEHAVIOUR_POLICIES = ("actor", "critic")
 """The policies a discrete SAC can collect with and deploy: the actor's, or the first critic's
 Boltzmann policy ``softmax(Q / alpha)``."""
 
+Q_LOSSES = ("mse", "huber")
+"""The regression losses of Q-values on their targets (see :func:`q_regression_loss`)."""
+
 CRITIC_TARGETS = ("actor", "boltzmann")
 """The policies a discrete SAC's critic targets average over at the next observations: the actor's
 (:func:`sac_next_value`), or the Boltzmann policy of the target critics' minimum, whose soft
@@ -91,11 +94,14 @@ def critic_minimum(q_values: list[th.Tensor]) -> th.Tensor:
 
 
 def q_regression_loss(
-    q_values: th.Tensor, actions: th.Tensor, target: th.Tensor, mask: th.Tensor
+    q_values: th.Tensor, actions: th.Tensor, target: th.Tensor, mask: th.Tensor, loss: str = "mse"
 ) -> th.Tensor:
-    """Mean squared error of the Q-values ``(..., n_actions)`` of the taken ``actions`` ``(..., 1)``
-    (int64) against ``target`` ``(...)`` over the entries of ``mask`` ``(...)``."""
+    """Mean error of the Q-values ``(..., n_actions)`` of the taken ``actions`` ``(..., 1)`` (int64)
+    against ``target`` ``(...)`` over the entries of ``mask`` ``(...)``: squared (``"mse"``), or
+    Huber's (``"huber"``: half the square up to an error of 1, linear beyond, as SB3's DQN)."""
     taken = q_values.gather(-1, actions).squeeze(-1)
+    if loss == "huber":
+        return masked_mean(F.smooth_l1_loss(taken, target, reduction="none"), mask)
     return masked_mean((taken - target) ** 2, mask)
 
 

@@ -13,6 +13,7 @@ from stable_baselines3.common.type_aliases import GymEnv, Schedule
 
 from sb3_hgrn.common.single_agent import TEMPERATURE_SAVE_PARAMS, check_discrete_env, transitions
 from sb3_hgrn.common.soft_math import (
+    Q_LOSSES,
     boltzmann_entropy,
     bootstrapped,
     gradient_step,
@@ -27,7 +28,7 @@ from sb3_hgrn.soft_dqn.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, S
 class SoftDQN(AlgorithmNamedRuns, TemperatureLearner, DQN):
     """Soft Q-learning for any Gymnasium env with a ``Discrete`` action space, used as SB3's ``DQN``.
 
-    The policy is ``softmax(Q / alpha)``; the Q-network regresses (squared error) on
+    The policy is ``softmax(Q / alpha)``; the Q-network regresses (squared error by default) on
     ``r + gamma * (1 - terminated) * alpha * logsumexp(Q_target(o', .) / alpha)`` (with
     ``n_steps > 1``, SB3's n-step returns: the discounted sum of ``n_steps`` rewards and
     ``gamma ** n_steps``), and alpha is learned so that the batch's mean entropy of
@@ -46,6 +47,7 @@ class SoftDQN(AlgorithmNamedRuns, TemperatureLearner, DQN):
     :param alpha_optimizer: ``"adam"`` or ``"sgd"`` for the temperature.
     :param alpha_learning_rate: learning rate of the temperature optimiser.
     :param alpha_max_step: one update moves alpha by at most this fraction of its value.
+    :param q_loss: ``"mse"`` (squared error) or ``"huber"`` (SB3's DQN's loss).
     :param policy_kwargs: SB3's ``DQNPolicy`` options, plus ``alpha_log_space``.
     """
 
@@ -79,6 +81,7 @@ class SoftDQN(AlgorithmNamedRuns, TemperatureLearner, DQN):
         alpha_optimizer: str = "adam",
         alpha_learning_rate: float = 1e-3,
         alpha_max_step: float = 0.01,
+        q_loss: str = "mse",
         exploration_fraction: float = 0.1,
         exploration_initial_eps: float = 0.0,
         exploration_final_eps: float = 0.0,
@@ -99,6 +102,9 @@ class SoftDQN(AlgorithmNamedRuns, TemperatureLearner, DQN):
             alpha_learning_rate,
             alpha_max_step,
         )
+        if q_loss not in Q_LOSSES:
+            raise ValueError(f"q_loss must be one of {', '.join(map(repr, Q_LOSSES))}, got {q_loss!r}.")
+        self.q_loss = q_loss
         super().__init__(
             policy,
             check_discrete_env(env, "SoftDQN", verbose),
@@ -145,7 +151,7 @@ class SoftDQN(AlgorithmNamedRuns, TemperatureLearner, DQN):
                 next_value = soft_q_next_value(self.q_net_target(data.next_observations), alpha)
                 target_q = bootstrapped(batch.rewards, batch.discounts, batch.terminated, next_value)
             q_values = self.q_net(data.observations)
-            loss = q_regression_loss(q_values, batch.actions, target_q, batch.mask)
+            loss = q_regression_loss(q_values, batch.actions, target_q, batch.mask, self.q_loss)
             gradient_step(self.policy.optimizer, loss, self.q_net, self.max_grad_norm)
             entropy, alpha_gradient = self._update_temperature(
                 boltzmann_entropy(q_values.detach(), alpha), None, batch.mask
