@@ -8,6 +8,8 @@ Prints, for Surviving with ``--agents`` agents:
 - collection steps/s with the policy (1 and 4 env copies, no training);
 - per network size: gradient updates/s of ``SoftHGRN.train`` and the bare network time of the same
   batch (target forward + forward + backward + optimiser step); their ratio is the learner overhead;
+  and the floor set by the dense matrix products alone (:func:`dense_update_flops` at the rate of a
+  float32 matrix product of the layers' width measured here), which no float32 update goes below;
 - bytes per replay row and the resident memory of a filled ``--buffer-rows`` buffer (measured first:
   once learning has started, freed memory stays with the process, ``sb3_hgrn.common.memory``), and
   peak RSS. ``SB3_HGRN_KEEP_FREED_MEMORY=0 python benchmarks/throughput.py`` runs without that.
@@ -61,6 +63,24 @@ def best_rate(run, count: int, repeats: int = 3) -> float:
             th.cuda.synchronize()
         best = min(best, time.perf_counter() - start)
     return count / best
+
+
+def dense_update_flops(network: th.nn.Module, rows: int) -> float:
+    """Floating-point operations of the dense matrix products of one update of ``rows`` agent rows:
+    every weight matrix (linear layers, GRU) multiplies each row once in the target network's forward,
+    once in the online forward and twice in its backward (input and weight gradients), 2 operations
+    per multiply-add. The sparse attention, element-wise work and the optimiser are left out."""
+    weights = sum(parameter.numel() for parameter in network.parameters() if parameter.dim() == 2)
+    return 2.0 * 4 * weights * rows
+
+
+def matmul_flops_per_s(rows: int, width: int, device: str, repeats: int = 5) -> float:
+    """This machine's rate of float32 matrix products ``(rows, width) @ (width, 4 * width)`` at the
+    current torch thread count: the pace the dense layers of an update can go at best."""
+    left = th.randn(rows, width, device=device)
+    right = th.randn(width, 4 * width, device=device)
+    left @ right  # warm-up
+    return best_rate(lambda: left @ right, 2 * rows * width * 4 * width, repeats)
 
 
 def resident_bytes() -> int:
@@ -144,6 +164,9 @@ def update_rates(n_agents: int, size: str, batch_size: int, updates: int, device
             optimizer.step()
 
     bare_rate = best_rate(bare_step, updates, repeats=2)
+    flops = dense_update_flops(q_net, batch_size * n_agents)
+    hidden_dim = (SIZES[size] or {}).get("hidden_dim", 64)
+    floor = flops / matmul_flops_per_s(batch_size * n_agents, hidden_dim, model.device.type)
     n_params = sum(p.numel() for p in q_net.parameters())
     paper_update = "paper update s, 128 graphs"
     versus = ""
@@ -153,7 +176,8 @@ def update_rates(n_agents: int, size: str, batch_size: int, updates: int, device
         f"update [{size}, {n_params / 1e6:.2f} M params] batch {batch_size} graphs x {n_agents} agents: "
         f"{1 / update_rate:6.3f} s/update ({update_rate:5.2f} updates/s), "
         f"bare network {1 / bare_rate:6.3f} s, "
-        f"learner overhead {bare_rate / update_rate:4.2f}x{versus}"
+        f"learner overhead {bare_rate / update_rate:4.2f}x{versus}; dense products alone "
+        f"{floor:6.3f} s ({flops / 1e9:.0f} GFLOP at this machine's matmul rate)"
     )
 
 
