@@ -1,7 +1,7 @@
 """SoftDQN and DiscreteSAC against SB3's DQN and PPO with the RL Zoo's tuned settings, on single-agent envs.
 
 Run: nice -n 10 python benchmarks/single_agent_zoo.py --envs CartPole-v1 --seeds 5 --threads 1
-     [--algorithms soft_dqn discrete_sac dqn ppo] [--results benchmarks/single_agent_zoo.json]
+     [--algorithms soft_dqn discrete_sac dqn ppo random] [--results benchmarks/single_agent_zoo.json]
      [--timesteps 200000] [--param target_entropy_ratio=0.25 --variant ratio0.25]
 
 Every algorithm trains each env for the RL Zoo's DQN budget (``n_timesteps`` of rl_zoo3's
@@ -12,7 +12,8 @@ copies' observation statistics), SoftDQN and DiscreteSAC with those of
 ``sb3_hgrn/hyperparams/<algorithm>.yml``. The score of a run is the mean return of its greedy policy
 over ``--eval-episodes`` episodes of an env seeded ``seed + 1000``. The table gives the IQM over seeds
 with its 95 % stratified-bootstrap interval (:mod:`sb3_hgrn.experiments.stats`, rliable) and the wall
-time per 100k env steps (training only), with its ratio to DQN's.
+time per 100k env steps (training only), with its ratio to DQN's. ``random`` is the floor: uniformly
+random actions, evaluated the same way.
 
 ``--timesteps N`` trains every algorithm for N env steps instead (MinAtar's 5M frames are hours per run
 on a CPU); the schedules keep their fractions of the budget, except the MinAtar paper's DQN
@@ -64,6 +65,26 @@ ZOO_ONLY_KEYS = {"n_timesteps", "policy", "n_envs", "normalize"}
 
 ZOO_ALGORITHMS = {"dqn": DQN, "ppo": PPO}
 """The SB3 anchors, by the name of their RL Zoo hyperparameter file."""
+
+RANDOM = "random"
+"""The floor: uniformly random actions, evaluated as the trained runs are (no training)."""
+
+
+class RandomActions:
+    """Uniformly random actions, called as ``evaluate_policy`` calls a model.
+
+    :param n_actions: the size of the env's ``Discrete`` action space.
+    :param seed: seed of its own random generator.
+    """
+
+    def __init__(self, n_actions: int, seed: int):
+        self.n_actions = n_actions
+        self.rng = np.random.default_rng(seed)
+
+    def predict(self, observation: np.ndarray, state=None, episode_start=None, deterministic=False):
+        """One random action per env copy ``(n_envs,)`` of a batched ``observation``."""
+        return self.rng.integers(self.n_actions, size=len(observation)), state
+
 
 MINATAR_DQN: dict[str, Any] = dict(
     n_timesteps=5_000_000,
@@ -155,6 +176,12 @@ def train_once(
     """Train one run (SoftDQN and DiscreteSAC with ``params`` over their settings) and evaluate its
     greedy policy: its score, steps and training wall time."""
     eval_env = None  # a Monitor env reset with seed + 1000, unless the model needs its own (PPO's)
+    if algorithm == RANDOM:
+        eval_env = Monitor(gym.make(ensure_registered(env)))
+        eval_env.reset(seed=seed + 1000)
+        policy = RandomActions(int(eval_env.action_space.n), seed)
+        score, _ = evaluate_policy(policy, eval_env, n_eval_episodes=eval_episodes)
+        return {"score": float(score), "env_steps": 0, "wall_time_s": 0.0}
     if algorithm == "dqn":
         settings = zoo_settings("dqn", env, timesteps)
         arguments = {key: value for key, value in settings.items() if key not in ZOO_ONLY_KEYS}
@@ -196,11 +223,13 @@ def table_rows(results: dict[str, dict[str, Any]], envs: list[str], algorithms: 
                 continue
             scores = np.array([[run["score"]] for run in runs])
             interval = iqm_interval(scores)
-            per_100k = float(np.mean([run["wall_time_s"] / run["env_steps"] * 1e5 for run in runs]))
-            ratio = f"{per_100k / dqn_time:.2f}" if dqn_time else "-"
+            times, ratio = "-", "-"  # none for the untrained floor
+            if algorithm != RANDOM:
+                per_100k = float(np.mean([run["wall_time_s"] / run["env_steps"] * 1e5 for run in runs]))
+                times, ratio = f"{per_100k:.0f}", f"{per_100k / dqn_time:.2f}" if dqn_time else "-"
             rows.append(
                 f"| {env} | {algorithm} | {len(runs)} | {interval.estimate:.1f} "
-                f"[{interval.low:.1f}, {interval.high:.1f}] | {per_100k:.0f} | {ratio} |"
+                f"[{interval.low:.1f}, {interval.high:.1f}] | {times} | {ratio} |"
             )
     return rows
 
@@ -210,8 +239,8 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--envs", nargs="+", default=["CartPole-v1"])
-    parser.add_argument("--algorithms", nargs="+", default=[*SINGLE_AGENT_PRESETS, *ZOO_ALGORITHMS],
-                        choices=[*SINGLE_AGENT_PRESETS, *ZOO_ALGORITHMS])  # fmt: skip
+    parser.add_argument("--algorithms", nargs="+", default=[*SINGLE_AGENT_PRESETS, *ZOO_ALGORITHMS, RANDOM],
+                        choices=[*SINGLE_AGENT_PRESETS, *ZOO_ALGORITHMS, RANDOM])  # fmt: skip
     parser.add_argument("--seeds", type=int, default=5, help="seeds 0..N-1")
     parser.add_argument("--eval-episodes", type=int, default=20)
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
@@ -226,8 +255,8 @@ def main() -> None:
     params = parse_assignments(args.param)
     if bool(params) != bool(args.variant):
         parser.error("--param and --variant go together: name the runs whose settings differ")
-    if params and set(args.algorithms) & set(ZOO_ALGORITHMS):
-        parser.error(f"--param changes only {', '.join(SINGLE_AGENT_PRESETS)}; drop dqn and ppo")
+    if params and set(args.algorithms) - set(SINGLE_AGENT_PRESETS):
+        parser.error(f"--param changes only {', '.join(SINGLE_AGENT_PRESETS)}; drop the others")
     th.set_num_threads(args.threads)
     path = Path(args.results)
     results = load_results(path)
@@ -249,7 +278,7 @@ def main() -> None:
     print("| env | algorithm | seeds | IQM [95 % CI] | wall s / 100k steps | x DQN |")
     print("| --- | --- | --- | --- | --- | --- |")
     variants = [f"{algorithm}:{args.variant}" for algorithm in args.algorithms] if args.variant else []
-    names = list(dict.fromkeys([*args.algorithms, "dqn", *variants]))  # beside the packaged settings' runs
+    names = list(dict.fromkeys([*args.algorithms, "dqn", RANDOM, *variants]))  # beside the packaged runs
     print("\n".join(table_rows(results, labels, names)))
 
 
