@@ -174,7 +174,8 @@ def train_once(
     algorithm: str, env: str, seed: int, timesteps: int, eval_episodes: int, params: dict[str, Any]
 ) -> dict[str, Any]:
     """Train one run (SoftDQN and DiscreteSAC with ``params`` over their settings) and evaluate its
-    greedy policy: its score, steps and training wall time."""
+    greedy policy: its score, steps and training wall time (``random``: no training, the uniform
+    policy evaluated, 0 steps and seconds)."""
     eval_env = None  # a Monitor env reset with seed + 1000, unless the model needs its own (PPO's)
     if algorithm == RANDOM:
         eval_env = Monitor(gym.make(ensure_registered(env)))

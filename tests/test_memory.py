@@ -2,6 +2,7 @@
 a 64 MiB allocation comes from malloc's heap instead of a fresh ``mmap``, unless the user turned it
 off. Each case runs in its own process, since the setting holds for a whole process."""
 
+import ctypes
 import os
 import platform
 import subprocess
@@ -11,7 +12,10 @@ import pytest
 
 from sb3_hgrn.common.memory import OPT_OUT_VARIABLE
 
-pytestmark = pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="malloc settings of glibc")
+pytestmark = pytest.mark.skipif(
+    platform.libc_ver()[0] != "glibc" or not hasattr(ctypes.CDLL(None), "mallinfo2"),
+    reason="malloc settings of glibc, read with its mallinfo2 (glibc 2.33 and later)",
+)
 
 LEARN_THEN_ALLOCATE = """
 import ctypes
